@@ -1,0 +1,39 @@
+"""The ``cosy-lite`` command: one sub-command per task, looked up in a table.
+
+Each entry names the module that implements it; that module exposes ``add_arguments(parser)``
+and ``run(args) -> int`` for the command (imported only when the command is used).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "generate": ("cosy_lite.synth.command", "Generate the embedded synthetic BOP dataset"),
+    "show": ("cosy_lite.vis.command_show", "Overlay GT poses on a dataset image (PNG)"),
+    "contact-sheet": ("cosy_lite.vis.command_contact_sheet", "Grid of random training images with GT contours (PNG)"),
+    "check-dataset": ("cosy_lite.bop.command_check_dataset", "Validate a BOP dataset folder"),
+    "check-results": ("cosy_lite.bop.command_check_results", "Validate a BOP19 results CSV"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="cosy-lite", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(importlib.import_module(args._module).run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
