@@ -1,0 +1,26 @@
+# The two commands a newcomer needs (see README):
+#   make demo   install everything, then run the main job end to end on the embedded default data
+#   make test   install everything, then run the test suite
+PY := .venv/bin/python
+DATA ?= data
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: setup demo test bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	$(PY) -m cosy_lite.cli generate --out $(DATA)/ycbv-synth --workers 2
+	$(PY) -m cosy_lite.cli check-dataset $(DATA)/ycbv-synth
+	$(PY) -m cosy_lite.cli show $(DATA)/ycbv-synth --split test --scene 0 --image 0 --out outputs/demo_show_test_000000_000000.png
+	$(PY) -m cosy_lite.cli contact-sheet $(DATA)/ycbv-synth --split train_pbr -n 16 --out outputs/demo_contact_sheet.png
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) bench/bench_synth.py
+
+clean:
+	rm -rf outputs .pytest_cache
