@@ -362,6 +362,8 @@ def load_scene_gt_info(path: str | Path) -> dict[int, list[GtInfo]]:
     out = {}
     for key, lst in raw.items():
         im_id = _im_key(path, key)
+        if not isinstance(lst, list):
+            raise BopFormatError(path, key, "expected a list of GT info entries")
         infos = []
         for i, d in enumerate(lst):
             where = f"{key}[{i}]"
