@@ -59,10 +59,12 @@ class BopDataset:
     def params(self) -> DatasetParams:
         return get_dataset_params(self.name)
 
-    def split_params(self, split: str) -> SplitParams:
-        if split in self.params.splits:
-            return self.params.splits[split]
-        raise KeyError(f"{self.name}: unknown split {split!r}; known: {list(self.params.splits)}")
+    def split_params(self, split: str) -> SplitParams | None:
+        """Parameters of ``split`` if the dataset and split are in the table, else None."""
+        from cosy_lite.bop.params import DATASETS
+
+        p = DATASETS.get(self.name)
+        return p.splits.get(split) if p is not None else None
 
     # ------------------------------------------------------------------ models
     @property
@@ -108,7 +110,7 @@ class BopDataset:
         return sorted(int(p.name) for p in d.iterdir() if p.is_dir() and p.name.isdigit())
 
     def available_splits(self) -> list[str]:
-        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and p.name not in ("models", "models_eval")) if self.root.is_dir() else []
+        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(("models", "."))) if self.root.is_dir() else []
 
     def scene_camera(self, split: str, scene_id: int) -> dict[int, io.CameraRecord]:
         return self._cached(("cam", split, scene_id), lambda: io.load_scene_camera(self.scene_dir(split, scene_id) / "scene_camera.json"))
@@ -140,12 +142,12 @@ class BopDataset:
         return p  # the expected path; the reader reports it missing
 
     def rgb_path(self, split: str, scene_id: int, im_id: int) -> Path:
-        sp = self.split_params(split) if split in self.params.splits else SplitParams((0, 0))
+        sp = self.split_params(split) or SplitParams((0, 0))
         sub = "gray" if sp.gray else "rgb"
         return self._find_image(self.scene_dir(split, scene_id) / sub, im_id, sp.rgb_ext)
 
     def depth_path(self, split: str, scene_id: int, im_id: int) -> Path:
-        sp = self.split_params(split) if split in self.params.splits else SplitParams((0, 0))
+        sp = self.split_params(split) or SplitParams((0, 0))
         return self._find_image(self.scene_dir(split, scene_id) / "depth", im_id, sp.depth_ext)
 
     def mask_path(self, split: str, scene_id: int, im_id: int, gt_idx: int, visib: bool = False) -> Path:

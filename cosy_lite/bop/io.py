@@ -20,6 +20,7 @@ import numpy as np
 from cosy_lite.errors import BopFormatError
 
 MM = 1e-3  # metres per millimetre
+MM_PER_M = 1000.0  # multiply (not divide by MM) so 0.3 m is written as 300.0
 MIN_PLAUSIBLE_T_MM = 20.0  # a cam_t_m2c shorter than this is almost surely in metres
 MIN_PLAUSIBLE_DIAMETER_MM = 5.0  # a model smaller than this is almost surely in metres
 
@@ -224,21 +225,21 @@ def models_info_to_json(infos: dict[int, ModelInfo]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for obj_id in sorted(infos):
         m = infos[obj_id]
-        d: dict[str, Any] = {"diameter": float(m.diameter / MM)}
+        d: dict[str, Any] = {"diameter": float(m.diameter * MM_PER_M)}
         for i, a in enumerate("xyz"):
-            d[f"min_{a}"] = float(m.mins[i] / MM)
+            d[f"min_{a}"] = float(m.mins[i] * MM_PER_M)
         for i, a in enumerate("xyz"):
-            d[f"size_{a}"] = float(m.sizes[i] / MM)
+            d[f"size_{a}"] = float(m.sizes[i] * MM_PER_M)
         if len(m.symmetries_discrete):
             syms = []
             for S in m.symmetries_discrete:
                 S = np.array(S, dtype=np.float64)
-                S[:3, 3] /= MM
+                S[:3, 3] *= MM_PER_M
                 syms.append([float(v) for v in S.reshape(-1)])
             d["symmetries_discrete"] = syms
         if m.symmetries_continuous:
             d["symmetries_continuous"] = [
-                {"axis": [float(v) for v in axis], "offset": [float(v / MM) for v in offset]}
+                {"axis": [float(v) for v in axis], "offset": [float(v * MM_PER_M) for v in offset]}
                 for axis, offset in m.symmetries_continuous
             ]
         out[str(obj_id)] = d
@@ -306,7 +307,7 @@ def scene_camera_to_json(cams: dict[int, CameraRecord]) -> dict[str, Any]:
         d: dict[str, Any] = {"cam_K": [float(v) for v in np.asarray(c.K).reshape(-1)], "depth_scale": float(c.depth_scale)}
         if c.T_CW is not None:
             d["cam_R_w2c"] = [float(v) for v in c.T_CW[:3, :3].reshape(-1)]
-            d["cam_t_w2c"] = [float(v / MM) for v in c.T_CW[:3, 3]]
+            d["cam_t_w2c"] = [float(v * MM_PER_M) for v in c.T_CW[:3, 3]]
         out[str(im_id)] = d
     return out
 
@@ -345,7 +346,7 @@ def scene_gt_to_json(gts: dict[int, list[GtPose]]) -> dict[str, Any]:
         str(im_id): [
             {
                 "cam_R_m2c": [float(v) for v in g.TCO[:3, :3].reshape(-1)],
-                "cam_t_m2c": [float(v / MM) for v in g.TCO[:3, 3]],
+                "cam_t_m2c": [float(v * MM_PER_M) for v in g.TCO[:3, 3]],
                 "obj_id": int(g.obj_id),
             }
             for g in gts[im_id]
