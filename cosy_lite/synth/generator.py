@@ -43,7 +43,7 @@ class SynthConfig:
     name: str = "ycbv-synth"
     obj_ids: list[int] = field(default_factory=lambda: list(range(1, 22)))
     seed: int = 0
-    train: SplitConfig = field(default_factory=lambda: SplitConfig(n_images=2000, views_per_layout=25, rgb_ext=".jpg"))
+    train: SplitConfig = field(default_factory=lambda: SplitConfig(n_images=1000, views_per_layout=25, rgb_ext=".jpg"))
     test: SplitConfig = field(default_factory=lambda: SplitConfig(n_images=100, views_per_layout=10, rgb_ext=".png"))
     objects_per_layout: list[int] = field(default_factory=lambda: [8, 12])  # [min, max], without repetition
     distractors_per_layout: list[int] = field(default_factory=lambda: [2, 4])
