@@ -107,7 +107,7 @@ def test_continuous_count_and_rigidity(cylinder):
     v = cylinder.vertices
     discrete, continuous = find_symmetries(v, _diameter(v))
     info = _info(v, discrete, continuous)
-    T = symmetry_transforms(info, max_sym_disc_step=0.01)
+    T = symmetry_transforms(info, max_sym_disc_step=0.01, include_zero_angle=False)
     n = math.ceil(math.pi / 0.01)
     assert n == 315
     assert T.shape == ((n - 1) * (1 + len(discrete)), 4, 4) == (628, 4, 4)
@@ -118,9 +118,10 @@ def test_continuous_count_and_rigidity(cylinder):
     tree = cKDTree(v)
     moved = np.einsum("nij,vj->nvi", T[:, :3, :3], v) + T[:, None, :3, 3]
     assert tree.query(moved.reshape(-1, 3))[0].max() < eps
-    # The toolkit's quirk: i in 1..n-1, so the identity is not in the set; with i from 0 it is.
+    # The older toolkit's quirk: i in 1..n-1, so the identity is not in the set; the current
+    # toolkit (our default) starts at i = 0.
     assert not any(np.allclose(S, np.eye(4)) for S in T)
-    T0 = symmetry_transforms(info, 0.01, include_zero_angle=True)
+    T0 = symmetry_transforms(info, 0.01)
     assert len(T0) == n * 2 and np.allclose(T0[0], np.eye(4))
 
 
@@ -129,7 +130,7 @@ def test_toolkit_order_and_offset():
     flip = make_T(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.0])
     offset = np.array([0.01, 0.02, 0.0])
     info = ModelInfo(1, 0.1, np.zeros(3), np.ones(3) * 0.1, flip[None], [(np.array([0.0, 0.0, 1.0]), offset)])
-    T = symmetry_transforms(info, max_sym_disc_step=math.pi / 4)  # n = 4: angles 90, 180, 270 deg
+    T = symmetry_transforms(info, max_sym_disc_step=math.pi / 4, include_zero_angle=False)  # n = 4: 90, 180, 270 deg
     assert T.shape == (6, 4, 4)
     for i, k in enumerate((1, 2, 3)):
         R = rotation_about_axis(np.array([0.0, 0.0, 1.0]), k * math.pi / 2)

@@ -66,7 +66,7 @@ def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- BOP discretisation
 
 
-def symmetry_transforms(info: ModelInfo, max_sym_disc_step: float = 0.01, include_zero_angle: bool = False) -> np.ndarray:
+def symmetry_transforms(info: ModelInfo, max_sym_disc_step: float = 0.01, include_zero_angle: bool = True) -> np.ndarray:
     """The symmetry set [N,4,4] (t in metres) as the BOP toolkit's ``get_symmetry_transformations``.
 
     Discrete set D = identity (first) + ``info.symmetries_discrete``. Each continuous symmetry
@@ -76,12 +76,11 @@ def symmetry_transforms(info: ModelInfo, max_sym_disc_step: float = 0.01, includ
     other). The result is every ``c @ d`` (R = Rc Rd, t = Rc td + tc), ordered d-major then c
     (the toolkit's loops); with no continuous symmetry it is D itself.
 
-    Quirk reproduced on purpose: with ``include_zero_angle=False`` (default) ``i`` runs over
-    ``1..n-1`` as in bop_toolkit before PR #70 (mid 2023; the version behind the BOP 2019-2022
-    evaluations and CosyPose), so the angle 0 is missing from C and, for an object with only a
-    continuous symmetry, the identity is NOT in the set (n - 1 = 314 transforms for step 0.01).
-    ``include_zero_angle=True`` gives ``i`` in ``0..n-1`` as bop_toolkit master after that PR.
-    Pick the one matching the toolkit whose scores you must reproduce.
+    Default (``include_zero_angle=True``): ``i`` in ``0..n-1``, as the current bop_toolkit
+    (after its fix "missing identity in get_symmetry_transformations", mid 2023).
+    ``include_zero_angle=False`` reproduces the older toolkit (BOP 2019-2022 evaluations,
+    CosyPose): ``i`` in ``1..n-1``, so for an object with only a continuous symmetry the identity
+    is NOT in the set (n - 1 = 314 transforms for step 0.01).
     """
     disc = np.concatenate([np.eye(4)[None], np.asarray(info.symmetries_discrete, dtype=np.float64).reshape(-1, 4, 4)])
     if not info.symmetries_continuous:
