@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "contact-sheet": ("cosy_lite.vis.command_contact_sheet", "Grid of random training images with GT contours (PNG)"),
     "check-dataset": ("cosy_lite.bop.command_check_dataset", "Validate a BOP dataset folder"),
     "check-results": ("cosy_lite.bop.command_check_results", "Validate a BOP19 results CSV"),
+    "eval": ("cosy_lite.eval.command", "Score a BOP19 results CSV (VSD, MSSD, MSPD, AR)"),
 }
 
 

@@ -1,0 +1,84 @@
+"""``cosy-lite eval``: validate a BOP19 results CSV, score it (VSD, MSSD, MSPD, AR), write JSON + PNG."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", required=True, metavar="DIR", help="BOP dataset folder")
+    p.add_argument("--results", required=True, type=Path, metavar="FILE.csv", help="results METHOD_DATASET-SPLIT.csv")
+    p.add_argument("--split", default=None, help="split folder (default: the dataset's BOP19 test split)")
+    p.add_argument("--name", default=None, help="dataset name (default: the folder name)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="where to write scores.json and recall_curves.png (default: RESULTS_STEM_eval/ beside the CSV)")
+    p.add_argument("--max-sym-disc-step", type=float, default=0.01,
+                   help="discretisation step of continuous symmetries (BOP: 0.01)")
+    p.add_argument("--sym-zero-angle", action="store_true",
+                   help="include the 0 angle in discretised continuous symmetries (bop_toolkit after mid 2023)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def format_table(result) -> str:
+    """AR per metric, overall and per object, as an aligned text table."""
+    s = result.scores
+    head = f"{'object':>8} {'targets':>8} {'ests':>6} {'AR':>7} {'AR_VSD':>7} {'AR_MSSD':>7} {'AR_MSPD':>7} {'AUC_ADD(-S)':>11}"
+    lines = [f"{result.dataset} / {result.split}: {result.n_estimates_evaluated} of {result.n_estimates_in_file} "
+             f"estimates evaluated, {s.n_targets} targets, {result.seconds:.1f} s", head, "-" * len(head)]
+    rows = [(str(o), x) for o, x in s.per_object.items()] + [("all", s)]
+    for label, x in rows:
+        n_est = x.n_estimates
+        lines.append(f"{label:>8} {x.n_targets:>8} {n_est:>6} {x.ar:7.4f} {x.ar_vsd:7.4f} {x.ar_mssd:7.4f} "
+                     f"{x.ar_mspd:7.4f} {x.auc_add_s:11.4f}")
+    return "\n".join(lines)
+
+
+def plot_curves(result, path: Path) -> None:
+    """Recall vs threshold: VSD (one curve per tau, vs theta), MSSD (vs fraction of diameter), MSPD (vs px)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_TAUS, VSD_THETAS
+
+    s = result.scores
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    for i, tau in enumerate(VSD_TAUS):
+        axes[0].plot(VSD_THETAS, s.recall_vsd[i], marker=".", label=f"tau={tau:.2f}d")
+    axes[0].set(title=f"VSD (AR {s.ar_vsd:.3f})", xlabel="theta", ylabel="recall")
+    axes[0].legend(fontsize=6, ncol=2)
+    axes[1].plot(MSSD_THRESHOLDS, s.recall_mssd, marker="o")
+    axes[1].set(title=f"MSSD (AR {s.ar_mssd:.3f})", xlabel="threshold [x diameter]")
+    axes[2].plot(s.mspd_thresholds_px, s.recall_mspd, marker="o")
+    axes[2].set(title=f"MSPD (AR {s.ar_mspd:.3f})", xlabel="threshold [px]")
+    for ax in axes:
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{result.dataset}/{result.split}: AR {s.ar:.4f}")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.io import atomic_write_text
+    from cosy_lite.bop.validate import check_results, report
+    from cosy_lite.eval.evaluator import evaluate
+
+    problems = check_results(args.results, args.dataset, args.name, args.split)
+    if any(p.severity == "error" for p in problems):
+        return report(problems, str(args.results))
+    for p in problems:
+        print(p)
+    result = evaluate(args.dataset, args.results, args.split, args.name, args.max_sym_disc_step,
+                      args.sym_zero_angle, progress=not args.no_progress)
+    print(format_table(result))
+    out = args.out or args.results.with_name(args.results.stem + "_eval")
+    atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")
+    plot_curves(result, out / "recall_curves.png")
+    print(f"wrote {out / 'scores.json'} and {out / 'recall_curves.png'}")
+    return 0

@@ -1,0 +1,139 @@
+"""Pose errors of the BOP Challenge (VSD, MSSD, MSPD) and the classic ADD / ADI, in metres.
+
+Semantics follow bop_toolkit ``pose_error.py`` and ``eval_calc_errors.py`` (BOP 2019-2020 paper,
+Sec. 2): poses are object-to-camera ``TCO`` [4,4] (t in m), model points are ``models_eval``
+vertices [N,3] in m, a symmetry ``S`` [4,4] maps model coordinates to model coordinates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+SYM_CHUNK_POINTS = 2_000_000  # symmetries x points evaluated at once (memory bound)
+
+
+def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply rigid transforms [...,4,4] to points [N,3] -> [...,N,3]."""
+    T = np.asarray(T, dtype=np.float64)
+    return pts @ np.swapaxes(T[..., :3, :3], -1, -2) + T[..., None, :3, 3]
+
+
+def project_points(pts_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole projection of camera-frame points [...,N,3] with ``K`` [3,3] -> pixels [...,N,2]."""
+    K = np.asarray(K, dtype=np.float64)
+    uvw = pts_cam @ K.T
+    return uvw[..., :2] / uvw[..., 2:3]
+
+
+def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be [4,4], got {T.shape}")
+    return T
+
+
+def _check_points(pts: np.ndarray) -> np.ndarray:
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"pts must be [N,3] with N > 0, got {pts.shape}")
+    return pts
+
+
+def _check_syms(syms: np.ndarray) -> np.ndarray:
+    syms = np.asarray(syms, dtype=np.float64)
+    if syms.ndim != 3 or syms.shape[1:] != (4, 4) or len(syms) == 0:
+        raise ValueError(f"syms must be [S,4,4] with S > 0 (identity included), got {syms.shape}")
+    return syms
+
+
+def _min_over_syms(TCO_gt: np.ndarray, syms: np.ndarray, pts: np.ndarray, err_fn) -> float:
+    """min over S of err_fn(points of the model at TCO_gt @ S [s,N,3]) (err_fn -> [s]), chunked over S."""
+    chunk = max(1, SYM_CHUNK_POINTS // len(pts))
+    best = np.inf
+    for i in range(0, len(syms), chunk):
+        pts_gt = transform_points(TCO_gt @ syms[i:i + chunk], pts)  # [s,N,3]
+        best = min(best, float(err_fn(pts_gt).min()))
+    return best
+
+
+def mssd(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray, syms: np.ndarray) -> float:
+    """Maximum Symmetry-aware Surface Distance [m].
+
+    ``min_S max_v ||TCO_est v - TCO_gt S v||`` over symmetries ``syms`` [S,4,4] and points ``pts`` [N,3].
+    """
+    TCO_est, TCO_gt = _check_pose(TCO_est, "TCO_est"), _check_pose(TCO_gt, "TCO_gt")
+    pts, syms = _check_points(pts), _check_syms(syms)
+    pts_est = transform_points(TCO_est, pts)
+    return _min_over_syms(TCO_gt, syms, pts, lambda p: np.linalg.norm(p - pts_est, axis=-1).max(axis=-1))
+
+
+def mspd(TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray, pts: np.ndarray, syms: np.ndarray) -> float:
+    """Maximum Symmetry-aware Projection Distance [px].
+
+    ``min_S max_v ||proj(TCO_est v) - proj(TCO_gt S v)||`` with intrinsics ``K`` [3,3].
+    """
+    TCO_est, TCO_gt = _check_pose(TCO_est, "TCO_est"), _check_pose(TCO_gt, "TCO_gt")
+    pts, syms = _check_points(pts), _check_syms(syms)
+    uv_est = project_points(transform_points(TCO_est, pts), K)
+    return _min_over_syms(
+        TCO_gt, syms, pts, lambda p: np.linalg.norm(project_points(p, K) - uv_est, axis=-1).max(axis=-1)
+    )
+
+
+def add(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray) -> float:
+    """Average Distance of model points (ADD) [m]: ``mean_v ||TCO_est v - TCO_gt v||``."""
+    pts = _check_points(pts)
+    d = transform_points(_check_pose(TCO_est, "TCO_est"), pts) - transform_points(_check_pose(TCO_gt, "TCO_gt"), pts)
+    return float(np.linalg.norm(d, axis=1).mean())
+
+
+def adi(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray) -> float:
+    """ADD-S / ADI [m]: mean over GT-posed points of the distance to the nearest estimated-posed point (cKDTree)."""
+    pts = _check_points(pts)
+    pts_est = transform_points(_check_pose(TCO_est, "TCO_est"), pts)
+    pts_gt = transform_points(_check_pose(TCO_gt, "TCO_gt"), pts)
+    dist, _ = cKDTree(pts_est).query(pts_gt, k=1)
+    return float(dist.mean())
+
+
+def sphere_projections_overlap(radius: float, t_est: np.ndarray, t_gt: np.ndarray) -> bool:
+    """Whether the image projections of spheres of ``radius`` at centres ``t_est``, ``t_gt`` [3] (m) may overlap.
+
+    The toolkit's conservative shortcut: VSD is 1 for every tau when they do not.
+    """
+    t_est, t_gt = np.asarray(t_est, dtype=np.float64), np.asarray(t_gt, dtype=np.float64)
+    dist = np.linalg.norm(t_est[:2] / t_est[2] - t_gt[:2] / t_gt[2])
+    return bool(dist < radius * (1.0 / t_est[2] + 1.0 / t_gt[2]))
+
+
+def vsd(
+    dist_est: np.ndarray, dist_gt: np.ndarray, dist_test: np.ndarray, delta: float, taus: np.ndarray
+) -> np.ndarray:
+    """Visible Surface Discrepancy (BOP19, 'step' cost) for each misalignment tolerance.
+
+    Args:
+        dist_est, dist_gt: [H,W] distance maps (m, 0 = not rendered) of the model at the estimated
+            and the GT pose (see :func:`cosy_lite.geometry.depth.depth_to_distance`).
+        dist_test: [H,W] distance map of the test depth image (m, 0 = no measurement).
+        delta: tolerance of the visibility test (m), e.g. 0.015.
+        taus: [T] misalignment tolerances in m (e.g. 0.05..0.5 x diameter).
+    Returns:
+        [T] errors in [0, 1]; 1 for every tau if neither pose is visible. A pixel of the
+        intersection of the visibility masks matches when ``|dist_gt - dist_est| < tau``
+        (the toolkit counts ``cost >= tau`` as a miss).
+    """
+    from cosy_lite.geometry.depth import visibility_mask, visibility_mask_est
+
+    if not (dist_est.shape == dist_gt.shape == dist_test.shape) or dist_test.ndim != 2:
+        raise ValueError(f"distance maps must be [H,W] of one shape, got {dist_est.shape}, {dist_gt.shape}, {dist_test.shape}")
+    taus = np.asarray(taus, dtype=np.float64).reshape(-1)
+    visib_gt = visibility_mask(dist_test, dist_gt, delta)
+    visib_est = visibility_mask_est(dist_test, dist_est, visib_gt, delta)
+    inter = visib_gt & visib_est
+    union_count = int(np.count_nonzero(visib_gt | visib_est))
+    if union_count == 0:
+        return np.ones(len(taus))
+    costs = np.sort(np.abs(dist_gt[inter].astype(np.float64) - dist_est[inter].astype(np.float64)))
+    matches = np.searchsorted(costs, taus, side="left")  # number of costs < tau
+    return (union_count - matches) / float(union_count)
