@@ -72,6 +72,16 @@ def test_mssd_takes_the_best_symmetry_and_chunks(monkeypatch):
     assert pe.mssd(est, gt, BOX, syms) == pytest.approx(0.003, abs=1e-12)
 
 
+def test_batched_mssd_mspd_equal_single_calls():
+    syms = symmetry_transforms(_box_info())
+    gt = _pose(t=(0.01, 0.0, 0.6))
+    ests = np.stack([gt @ _flip(1), gt @ _pose(t=(0.0, 0.004, 0.0)), _pose(t=(0.03, 0.02, 0.7))])
+    m3, m2 = pe.mssd_mspd(ests, gt, K, BOX, syms)
+    np.testing.assert_allclose(m3, [pe.mssd(e, gt, BOX, syms) for e in ests], atol=1e-12)
+    np.testing.assert_allclose(m2, [pe.mspd(e, gt, K, BOX, syms) for e in ests], atol=1e-9)
+    assert m3[1] == pytest.approx(0.004, abs=1e-12)
+
+
 def test_continuous_symmetry_discretisation():
     cyl = np.array([[0.03 * np.cos(a), 0.03 * np.sin(a), z] for a in np.linspace(0, 2 * np.pi, 72, endpoint=False)
                     for z in (-0.05, 0.05)])

@@ -199,7 +199,7 @@ def test_eval_command_stops_on_invalid_csv(root: Path, capsys):
     csv = root.parent / "gt_tiny-test.csv"
     csv.write_text("scene_id,im_id,obj_id,score,R,t,time\n0,0,1,0.9,1 0 0 0 1 0 0 0 1,0 0 x,0.1")
     args = argparse.Namespace(dataset=str(root), results=csv, split=None, name=None, out=None,
-                              max_sym_disc_step=0.01, sym_zero_angle=False, no_progress=True)
+                              max_sym_disc_step=0.01, sym_zero_angle=True, no_progress=True)
     assert command.run(args) == 1
     assert "FAILED" in capsys.readouterr().out
     assert not (root.parent / "gt_tiny-test_eval").exists()

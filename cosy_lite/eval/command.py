@@ -8,7 +8,8 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dataset", required=True, metavar="DIR", help="BOP dataset folder")
+    p.add_argument("--dataset", required=True, metavar="DIR",
+                   help="BOP dataset folder, or a name under $COSY_LITE_DATA (default ./data)")
     p.add_argument("--results", required=True, type=Path, metavar="FILE.csv", help="results METHOD_DATASET-SPLIT.csv")
     p.add_argument("--split", default=None, help="split folder (default: the dataset's BOP19 test split)")
     p.add_argument("--name", default=None, help="dataset name (default: the folder name)")
@@ -16,8 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="where to write scores.json and recall_curves.png (default: RESULTS_STEM_eval/ beside the CSV)")
     p.add_argument("--max-sym-disc-step", type=float, default=0.01,
                    help="discretisation step of continuous symmetries (BOP: 0.01)")
-    p.add_argument("--sym-zero-angle", action="store_true",
-                   help="include the 0 angle in discretised continuous symmetries (bop_toolkit after mid 2023)")
+    p.add_argument("--old-toolkit-symmetries", dest="sym_zero_angle", action="store_false",
+                   help="discretise continuous symmetries without the 0 angle, as bop_toolkit before mid 2023 "
+                        "(BOP 2019-2022 scores); default: the current toolkit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -65,16 +67,18 @@ def plot_curves(result, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.command_check_results import resolve_dataset
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.validate import check_results, report
     from cosy_lite.eval.evaluator import evaluate
 
-    problems = check_results(args.results, args.dataset, args.name, args.split)
+    root = resolve_dataset(args.dataset)
+    problems = check_results(args.results, root, args.name, args.split)
     if any(p.severity == "error" for p in problems):
         return report(problems, str(args.results))
     for p in problems:
         print(p)
-    result = evaluate(args.dataset, args.results, args.split, args.name, args.max_sym_disc_step,
+    result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, progress=not args.no_progress)
     print(format_table(result))
     out = args.out or args.results.with_name(args.results.stem + "_eval")

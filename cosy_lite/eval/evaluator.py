@@ -88,7 +88,7 @@ def evaluate(
     split: str | None = None,
     name: str | None = None,
     max_sym_disc_step: float = 0.01,
-    sym_zero_angle: bool = False,
+    sym_zero_angle: bool = True,
     progress: bool = True,
 ) -> EvalResult:
     """Compute VSD, MSSD, MSPD, ADD and ADI of every evaluated estimate and score them (BOP19).
@@ -98,8 +98,9 @@ def evaluate(
         results_csv: BOP19 results CSV (validate it first with ``check_results``).
         split: split folder (default: the dataset's test split from the parameter table, else ``test``).
         name: dataset name for the parameter table (default: the folder name).
-        max_sym_disc_step, sym_zero_angle: discretisation of continuous symmetries
-            (see :func:`cosy_lite.geometry.symmetries.symmetry_transforms`).
+        max_sym_disc_step, sym_zero_angle: discretisation of continuous symmetries (see
+            :func:`cosy_lite.geometry.symmetries.symmetry_transforms`; True = current bop_toolkit,
+            False = the toolkit of the BOP 2019-2022 evaluations).
         progress: show a tqdm bar over images.
     """
     from tqdm import tqdm
@@ -204,16 +205,16 @@ def _target_errors(t, ests, gt_idx, rec, obj: _ObjectData, K, d_est, d_gt, dist_
     vsd = np.ones((E, G, len(VSD_TAUS)))
     mssd, mspd, add, adi = (np.full((E, G), np.inf) for _ in range(4))
     taus = VSD_TAUS * obj.diameter
+    T_est_all = np.stack([e.TCO for e in ests])
     for g, gi in enumerate(gt_idx):
         T_gt = rec.gt[gi].TCO
-        for e, est in enumerate(ests):
-            T_est = est.TCO
+        mssd[:, g], mspd[:, g] = pose_errors.mssd_mspd(T_est_all, T_gt, K, obj.pts, obj.syms)
+        for e, T_est in enumerate(T_est_all):
             if pose_errors.sphere_projections_overlap(0.5 * obj.diameter, T_est[:3, 3], T_gt[:3, 3]):
                 vsd[e, g] = pose_errors.vsd(d_est[e], d_gt[g], dist_test, delta, taus)
             # The toolkit's shortcut: MSSD is inf when the bounding spheres do not overlap.
-            if np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]) < obj.diameter:
-                mssd[e, g] = pose_errors.mssd(T_est, T_gt, obj.pts, obj.syms)
-            mspd[e, g] = pose_errors.mspd(T_est, T_gt, K, obj.pts, obj.syms)
+            if np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]) >= obj.diameter:
+                mssd[e, g] = np.inf
             add[e, g] = pose_errors.add(T_est, T_gt, obj.pts)
             adi[e, g] = pose_errors.adi(T_est, T_gt, obj.pts)
     return TargetErrors(t.scene_id, t.im_id, t.obj_id, t.inst_count, np.array([e.score for e in ests], dtype=np.float64),

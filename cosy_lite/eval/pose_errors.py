@@ -47,14 +47,35 @@ def _check_syms(syms: np.ndarray) -> np.ndarray:
     return syms
 
 
-def _min_over_syms(TCO_gt: np.ndarray, syms: np.ndarray, pts: np.ndarray, err_fn) -> float:
-    """min over S of err_fn(points of the model at TCO_gt @ S [s,N,3]) (err_fn -> [s]), chunked over S."""
-    chunk = max(1, SYM_CHUNK_POINTS // len(pts))
-    best = np.inf
+def _max_sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """max over the point axis of squared distances: a [...,N,D], b [...,N,D] -> [...]."""
+    d = a - b
+    return np.einsum("...nd,...nd->...n", d, d).max(axis=-1)
+
+
+def mssd_mspd(
+    TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray, pts: np.ndarray, syms: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """MSSD [m] and MSPD [px] of E estimates against one GT pose, sharing the symmetric GT points.
+
+    Args:
+        TCO_est: [E,4,4]; TCO_gt: [4,4]; K: [3,3]; pts: [N,3] model points (m); syms: [S,4,4].
+    Returns:
+        mssd [E] = min_S max_v ||TCO_est v - TCO_gt S v||, mspd [E] the same on projections (px).
+    """
+    TCO_est = np.asarray(TCO_est, dtype=np.float64).reshape(-1, 4, 4)
+    TCO_gt = _check_pose(TCO_gt, "TCO_gt")
+    pts, syms = _check_points(pts), _check_syms(syms)
+    pts_est = transform_points(TCO_est, pts)[:, None]  # [E,1,N,3]
+    uv_est = project_points(pts_est, K)  # [E,1,N,2]
+    chunk = max(1, SYM_CHUNK_POINTS // (len(pts) * max(1, len(TCO_est))))
+    best_3d = np.full(len(TCO_est), np.inf)
+    best_2d = np.full(len(TCO_est), np.inf)
     for i in range(0, len(syms), chunk):
         pts_gt = transform_points(TCO_gt @ syms[i:i + chunk], pts)  # [s,N,3]
-        best = min(best, float(err_fn(pts_gt).min()))
-    return best
+        best_3d = np.minimum(best_3d, _max_sq_dist(pts_est, pts_gt[None]).min(axis=1))
+        best_2d = np.minimum(best_2d, _max_sq_dist(uv_est, project_points(pts_gt, K)[None]).min(axis=1))
+    return np.sqrt(best_3d), np.sqrt(best_2d)
 
 
 def mssd(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray, syms: np.ndarray) -> float:
@@ -62,10 +83,9 @@ def mssd(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray, syms: np.ndar
 
     ``min_S max_v ||TCO_est v - TCO_gt S v||`` over symmetries ``syms`` [S,4,4] and points ``pts`` [N,3].
     """
-    TCO_est, TCO_gt = _check_pose(TCO_est, "TCO_est"), _check_pose(TCO_gt, "TCO_gt")
-    pts, syms = _check_points(pts), _check_syms(syms)
-    pts_est = transform_points(TCO_est, pts)
-    return _min_over_syms(TCO_gt, syms, pts, lambda p: np.linalg.norm(p - pts_est, axis=-1).max(axis=-1))
+    TCO_est = _check_pose(TCO_est, "TCO_est")
+    with np.errstate(divide="ignore", invalid="ignore"):  # the unused projection may divide by z = 0
+        return float(mssd_mspd(TCO_est, TCO_gt, np.eye(3), pts, syms)[0][0])
 
 
 def mspd(TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray, pts: np.ndarray, syms: np.ndarray) -> float:
@@ -73,12 +93,8 @@ def mspd(TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray, pts: np.ndarray
 
     ``min_S max_v ||proj(TCO_est v) - proj(TCO_gt S v)||`` with intrinsics ``K`` [3,3].
     """
-    TCO_est, TCO_gt = _check_pose(TCO_est, "TCO_est"), _check_pose(TCO_gt, "TCO_gt")
-    pts, syms = _check_points(pts), _check_syms(syms)
-    uv_est = project_points(transform_points(TCO_est, pts), K)
-    return _min_over_syms(
-        TCO_gt, syms, pts, lambda p: np.linalg.norm(project_points(p, K) - uv_est, axis=-1).max(axis=-1)
-    )
+    TCO_est = _check_pose(TCO_est, "TCO_est")
+    return float(mssd_mspd(TCO_est, TCO_gt, K, pts, syms)[1][0])
 
 
 def add(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray) -> float:
