@@ -176,3 +176,20 @@ def test_vsd_of_a_symmetric_pose_is_zero_when_rendered():
         e = pe.vsd(dist[i], dist[0], test, DELTA, taus)
         assert e.max() < 2e-3, (i, e)  # a few silhouette pixels may differ by rasterisation
     assert pe.vsd(dist[4], dist[0], test, DELTA, taus).min() > 0.05  # a 1 cm shift is seen
+
+
+def test_mssd_mspd_equal_the_toolkit_loops_with_continuous_symmetry():
+    rng = np.random.default_rng(1)
+    pts = rng.normal(0, 0.03, (50, 3))
+    info = ModelInfo(1, 0.15, pts.min(0), np.ptp(pts, 0), _flip(0)[None],
+                     [(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.005]))])
+    syms = symmetry_transforms(info, 0.05)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    gt = _pose(R * np.linalg.det(R), (0.02, -0.03, 0.7))  # proper rotation
+    est = gt @ syms[7] @ _pose(t=(0.002, -0.001, 0.003))
+    loop3 = min(np.linalg.norm(pe.transform_points(est, pts) - pe.transform_points(gt @ S, pts), axis=1).max() for S in syms)
+    loop2 = min(np.linalg.norm(pe.project_points(pe.transform_points(est, pts), K)
+                               - pe.project_points(pe.transform_points(gt @ S, pts), K), axis=1).max() for S in syms)
+    m3, m2 = pe.mssd_mspd(est[None], gt, K, pts, syms)
+    assert m3[0] == pytest.approx(loop3, abs=1e-12) and m2[0] == pytest.approx(loop2, abs=1e-9)
+    assert m3[0] <= np.linalg.norm([0.002, 0.001, 0.003]) + 1e-12

@@ -205,3 +205,30 @@ def test_eval_command_stops_on_invalid_csv(root: Path, capsys):
     assert not (root.parent / "gt_tiny-test_eval").exists()
 
 
+
+
+def _match_loop(errors: np.ndarray, valid: np.ndarray, th: float) -> list[int]:
+    """The toolkit's match_poses, written as its loops (estimates already in score order)."""
+    matched: list[int] = []
+    out = [-1] * errors.shape[1]
+    for e, row in enumerate(errors):
+        best_gt, best_err = -1, th
+        for g, err in enumerate(row):
+            if valid[g] and g not in matched and err < best_err:
+                best_gt, best_err = g, err
+        if best_gt >= 0:
+            matched.append(best_gt)
+            out[best_gt] = e
+    return out
+
+
+def test_match_greedy_equals_the_toolkit_loop_on_random_cases():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        E, G = rng.integers(0, 5), rng.integers(0, 5)
+        errors = np.round(rng.random((E, G)), 1)  # rounding makes ties
+        valid = rng.random(G) < 0.8
+        th = np.array([0.05, 0.3, 0.5, 0.9])
+        got = match_greedy(errors, valid, th)
+        for k, t in enumerate(th):
+            assert got[k].tolist() == _match_loop(errors, valid, t)
