@@ -18,6 +18,7 @@ from cosy_lite.eval.scoring import (
     auc_threshold_curve,
     match_greedy,
     score_targets,
+    valid_gt,
 )
 
 # ----------------------------------------------------------------------------- matching
@@ -97,6 +98,13 @@ def test_gt_below_visibility_is_not_a_target():
     assert s.n_targets == 1 and s.ar == 1.0
 
 
+def test_valid_gt_rules():
+    v = np.array([0.05, 1.0, 0.5, 0.5])
+    np.testing.assert_array_equal(valid_gt(v, 2), [False, True, True, False])  # 2 most visible, GT order on ties
+    np.testing.assert_array_equal(valid_gt(v, 0), [False] * 4)
+    np.testing.assert_array_equal(valid_gt(v, 2, visib_gt_min=0.1), [False, True, True, True])
+
+
 def test_no_target_gives_zero_recall():
     s = score_targets([TargetErrors.empty(0, 0, 1, 1, np.array([False]))], DIAM, 640)
     assert s.n_targets == 0 and s.ar == 0.0
@@ -128,13 +136,13 @@ def root(tmp_path: Path) -> Path:
     return write_tiny_bop(tmp_path)
 
 
-def _evaluate(root: Path, ests: list[PoseEstimate]):
+def _evaluate(root: Path, ests: list[PoseEstimate], **kwargs):
     from cosy_lite.eval.evaluator import evaluate
 
     csv = root.parent / "gt_tiny-test.csv"
     write_results_csv(csv, ests)
     try:
-        return evaluate(root, csv, progress=False)
+        return evaluate(root, csv, progress=False, **kwargs)
     except Exception as e:  # only rendering problems are skipped
         if "EGL" in str(e) or "OpenGL" in type(e).__module__:
             pytest.skip(f"offscreen rendering unavailable: {e}")
@@ -173,9 +181,19 @@ def test_gt_with_low_visibility_is_not_a_target(root: Path):
     def low(d):
         d["1"][0]["visib_fract"] = 0.05  # im 1, first obj-1 instance
 
+    def one(targets):
+        targets[2]["inst_count"] = 1  # (0, 1, 1): one instance visible enough, as BOP makes targets
+
     edit_json(scene_dir(root) / "scene_gt_info.json", low)
     ests = [e for e in _gt_estimates() if not (e.im_id == 0 and e.obj_id == 1)]
+    ests[1].score = 0.5  # im 1: the estimate of the hidden instance ranks below the visible one's
     s = _evaluate(root, ests).scores
+    assert s.n_targets == 5 and s.ar == pytest.approx(0.8)  # inst_count 2: both instances are targets
+    edit_json(root / "test_targets_bop19.json", one)
+    s = _evaluate(root, ests).scores
+    assert s.n_targets == 4 and s.ar == pytest.approx(0.75)
+    # The threshold rule (visib_fract >= 0.1) gives the same with consistent targets.
+    s = _evaluate(root, ests, visib_gt_min=0.1).scores
     assert s.n_targets == 4 and s.ar == pytest.approx(0.75)
 
 
@@ -199,7 +217,7 @@ def test_eval_command_stops_on_invalid_csv(root: Path, capsys):
     csv = root.parent / "gt_tiny-test.csv"
     csv.write_text("scene_id,im_id,obj_id,score,R,t,time\n0,0,1,0.9,1 0 0 0 1 0 0 0 1,0 0 x,0.1")
     args = argparse.Namespace(dataset=str(root), results=csv, split=None, name=None, out=None,
-                              max_sym_disc_step=0.01, sym_zero_angle=True, no_progress=True)
+                              max_sym_disc_step=0.01, sym_zero_angle=True, visib_gt_min=-1.0, no_progress=True)
     assert command.run(args) == 1
     assert "FAILED" in capsys.readouterr().out
     assert not (root.parent / "gt_tiny-test_eval").exists()

@@ -20,6 +20,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--old-toolkit-symmetries", dest="sym_zero_angle", action="store_false",
                    help="discretise continuous symmetries without the 0 angle, as bop_toolkit before mid 2023 "
                         "(BOP 2019-2022 scores); default: the current toolkit")
+    p.add_argument("--visib-gt-min", type=float, default=-1.0,
+                   help="GT instances with visib_fract >= this are targets; -1 (default, the toolkit's BOP19 "
+                        "setting): the inst_count most visible instances of each target")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -79,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     for p in problems:
         print(p)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
-                      args.sym_zero_angle, progress=not args.no_progress)
+                      args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress)
     print(format_table(result))
     out = args.out or args.results.with_name(args.results.stem + "_eval")
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")

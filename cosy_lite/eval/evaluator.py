@@ -19,7 +19,7 @@ from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.results import PoseEstimate, read_results_csv
 from cosy_lite.errors import BopFormatError
 from cosy_lite.eval import pose_errors
-from cosy_lite.eval.scoring import VISIB_GT_MIN, VSD_TAUS, Scores, TargetErrors, score_targets
+from cosy_lite.eval.scoring import VISIB_GT_MIN, VSD_TAUS, Scores, TargetErrors, score_targets, valid_gt
 
 
 @dataclass
@@ -33,6 +33,7 @@ class EvalResult:
     n_estimates_evaluated: int
     vsd_delta: float  # m
     im_width: int
+    visib_gt_min: float
     scores: Scores
     targets: list[TargetErrors]
     seconds: float  # wall time of the evaluation
@@ -57,7 +58,7 @@ class EvalResult:
             "thresholds": {
                 "vsd_delta_m": self.vsd_delta, "vsd_taus_x_diameter": VSD_TAUS.tolist(),
                 "vsd_thetas": VSD_THETAS.tolist(), "mssd_x_diameter": MSSD_THRESHOLDS.tolist(),
-                "mspd_px": s.mspd_thresholds_px.tolist(), "im_width": self.im_width, "visib_gt_min": VISIB_GT_MIN,
+                "mspd_px": s.mspd_thresholds_px.tolist(), "im_width": self.im_width, "visib_gt_min": self.visib_gt_min,
             },
             **metric_block(s),
             "per_object": {
@@ -89,6 +90,7 @@ def evaluate(
     name: str | None = None,
     max_sym_disc_step: float = 0.01,
     sym_zero_angle: bool = True,
+    visib_gt_min: float = VISIB_GT_MIN,
     progress: bool = True,
 ) -> EvalResult:
     """Compute VSD, MSSD, MSPD, ADD and ADI of every evaluated estimate and score them (BOP19).
@@ -101,6 +103,8 @@ def evaluate(
         max_sym_disc_step, sym_zero_angle: discretisation of continuous symmetries (see
             :func:`cosy_lite.geometry.symmetries.symmetry_transforms`; True = current bop_toolkit,
             False = the toolkit of the BOP 2019-2022 evaluations).
+        visib_gt_min: which GT instances are targets (see :func:`cosy_lite.eval.scoring.valid_gt`;
+            default -1 = the ``inst_count`` most visible, as the toolkit's BOP19 evaluation).
         progress: show a tqdm bar over images.
     """
     from tqdm import tqdm
@@ -150,7 +154,7 @@ def evaluate(
             work.append((t, ests, gt_idx))
         if not any(ests and gi for _, ests, gi in work):
             for t, ests, gi in work:
-                out.append(_errors_without_render(t, ests, gi, rec, objs[t.obj_id]))
+                out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
                 n_eval += len(ests)
             continue
         depth = ds.load_depth(rec)
@@ -172,35 +176,35 @@ def evaluate(
         k = 0
         for t, ests, gi in work:
             if not (ests and gi):
-                out.append(_errors_without_render(t, ests, gi, rec, objs[t.obj_id]))
+                out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
                 n_eval += len(ests)
                 continue
             d_est, d_gt = dists[k:k + len(ests)], dists[k + len(ests):k + len(ests) + len(gi)]
             k += len(ests) + len(gi)
-            out.append(_target_errors(t, ests, gi, rec, objs[t.obj_id], K, d_est, d_gt, dist_test, delta))
+            out.append(_target_errors(t, ests, gi, rec, objs[t.obj_id], K, d_est, d_gt, dist_test, delta, visib_gt_min))
             n_eval += len(ests)
         bar.set_postfix(estimates=n_eval)
     for r in renderers.values():
         r.delete()
     scores = score_targets(out, {o: d.diameter for o, d in objs.items()}, im_width, symmetric)
-    return EvalResult(ds.name, split, str(results_csv), len(estimates), n_eval, delta, im_width, scores, out,
+    return EvalResult(ds.name, split, str(results_csv), len(estimates), n_eval, delta, im_width, visib_gt_min, scores, out,
                       time.perf_counter() - t0)
 
 
-def _gt_valid(rec, gt_idx: list[int]) -> np.ndarray:
-    return np.array([rec.gt_info[i].visib_fract >= VISIB_GT_MIN for i in gt_idx], dtype=bool)
+def _gt_valid(rec, gt_idx: list[int], inst_count: int, visib_gt_min: float) -> np.ndarray:
+    return valid_gt(np.array([rec.gt_info[i].visib_fract for i in gt_idx]), inst_count, visib_gt_min)
 
 
-def _errors_without_render(t, ests, gt_idx, rec, obj: _ObjectData) -> TargetErrors:
+def _errors_without_render(t, ests, gt_idx, rec, visib_gt_min: float) -> TargetErrors:
     """A target with no estimate or no GT instance: nothing to compare."""
-    te = TargetErrors.empty(t.scene_id, t.im_id, t.obj_id, t.inst_count, _gt_valid(rec, gt_idx))
+    te = TargetErrors.empty(t.scene_id, t.im_id, t.obj_id, t.inst_count, _gt_valid(rec, gt_idx, t.inst_count, visib_gt_min))
     te.scores = np.array([e.score for e in ests], dtype=np.float64)
     E, G = len(ests), len(gt_idx)  # one of them is 0
     te.vsd, te.mssd, te.mspd, te.add, te.adi = np.ones((E, G, len(VSD_TAUS))), *(np.full((E, G), np.inf) for _ in range(4))
     return te
 
 
-def _target_errors(t, ests, gt_idx, rec, obj: _ObjectData, K, d_est, d_gt, dist_test, delta) -> TargetErrors:
+def _target_errors(t, ests, gt_idx, rec, obj: _ObjectData, K, d_est, d_gt, dist_test, delta, visib_gt_min) -> TargetErrors:
     E, G = len(ests), len(gt_idx)
     vsd = np.ones((E, G, len(VSD_TAUS)))
     mssd, mspd, add, adi = (np.full((E, G), np.inf) for _ in range(4))
@@ -218,4 +222,4 @@ def _target_errors(t, ests, gt_idx, rec, obj: _ObjectData, K, d_est, d_gt, dist_
             add[e, g] = pose_errors.add(T_est, T_gt, obj.pts)
             adi[e, g] = pose_errors.adi(T_est, T_gt, obj.pts)
     return TargetErrors(t.scene_id, t.im_id, t.obj_id, t.inst_count, np.array([e.score for e in ests], dtype=np.float64),
-                        _gt_valid(rec, gt_idx), vsd, mssd, mspd, add, adi)
+                        _gt_valid(rec, gt_idx, t.inst_count, visib_gt_min), vsd, mssd, mspd, add, adi)

@@ -4,8 +4,13 @@ Semantics of bop_toolkit ``eval_calc_scores.py`` / ``score.py`` (``match_poses``
 ``calc_localization_scores``) with the BOP19 settings: per target (image, object) the estimates
 are the top ``inst_count`` by score; for each threshold, estimates in decreasing score take the
 lowest-error unmatched valid GT instance (strict ``<``, first in GT order on ties) if that error is
-below the threshold. Valid GT = ``visib_fract >= 0.1``; invalid ones can be neither matched nor
-counted. Recall = matched valid GT / valid GT, pooled over all targets; 0 when there is none.
+below the threshold. Valid GT (see :func:`valid_gt`): the toolkit's BOP19 default
+(``visib_gt_min = -1``) takes the ``inst_count`` most visible instances of the object; with
+``visib_gt_min >= 0`` those with ``visib_fract >= visib_gt_min``. On BOP datasets both give the
+instances with ``visib_fract >= 0.1`` (that is how ``inst_count`` was made). Invalid instances can
+be neither matched nor counted. Recall = matched valid GT / valid GT, pooled over all targets; 0
+when there is none. Errors are normalised as the toolkit does before thresholding (MSSD / diameter,
+MSPD x 640 / image width).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ VSD_TAUS = np.arange(0.05, 0.51, 0.05)  # x diameter (vsd_normalized_by_diameter
 VSD_THETAS = np.arange(0.05, 0.51, 0.05)  # correct if VSD error < theta
 MSSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # x diameter
 MSPD_THRESHOLDS_PX = np.arange(5, 51, 5).astype(np.float64)  # x image width / 640
-VISIB_GT_MIN = 0.1
+VISIB_GT_MIN = -1.0  # the toolkit's BOP19 setting: the inst_count most visible GT instances are valid
 AUC_MAX_M = 0.1  # YCB-V AUC of ADD(-S): thresholds 0..10 cm
 
 
@@ -35,7 +40,7 @@ class TargetErrors:
     obj_id: int
     inst_count: int
     scores: np.ndarray  # [E] descending
-    gt_valid: np.ndarray  # [G] bool, visib_fract >= 0.1
+    gt_valid: np.ndarray  # [G] bool, see valid_gt
     vsd: np.ndarray  # [E,G,T] errors in [0,1] per tau of VSD_TAUS
     mssd: np.ndarray  # [E,G] m
     mspd: np.ndarray  # [E,G] px
@@ -54,6 +59,25 @@ class TargetErrors:
             scene_id, im_id, obj_id, inst_count, np.zeros(0), np.asarray(gt_valid, dtype=bool),
             np.zeros((0, G, len(VSD_TAUS))), *(np.zeros((0, G)) for _ in range(4)),
         )
+
+
+def valid_gt(visib_fract: np.ndarray, inst_count: int, visib_gt_min: float = VISIB_GT_MIN) -> np.ndarray:
+    """Which GT instances of one target (image, object) may be matched and are counted.
+
+    Args:
+        visib_fract: [G] visible fractions of the object's GT instances, in GT order.
+        inst_count: the target's ``inst_count``.
+        visib_gt_min: < 0: the ``inst_count`` most visible (stable: GT order on ties), as the
+            toolkit's BOP19 evaluation; >= 0: every instance with ``visib_fract >= visib_gt_min``.
+    Returns:
+        [G] bool.
+    """
+    v = np.asarray(visib_fract, dtype=np.float64).reshape(-1)
+    if visib_gt_min >= 0:
+        return v >= visib_gt_min
+    valid = np.zeros(len(v), dtype=bool)
+    valid[np.argsort(-v, kind="stable")[:inst_count]] = True
+    return valid
 
 
 def match_greedy(errors: np.ndarray, gt_valid: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
@@ -173,7 +197,8 @@ def score_targets(
         im_width: test image width (px); MSPD thresholds are scaled by ``im_width / 640``.
         symmetric_obj_ids: objects scored with ADI in the AUC of ADD(-S).
     """
-    mspd_th = MSPD_THRESHOLDS_PX * (im_width / 640.0)
+    mspd_th = MSPD_THRESHOLDS_PX * (im_width / 640.0)  # reported; matching uses normalised errors
+    mspd_factor = 640.0 / im_width if im_width > 0 else 1.0
     T, Th = len(VSD_TAUS), len(VSD_THETAS)
     vsd_th = np.tile(VSD_THETAS, T)  # K = T*Theta, tau-major
     def zeros() -> dict[str, np.ndarray]:
@@ -190,8 +215,8 @@ def score_targets(
         if len(t.scores) and len(t.gt_valid):
             vsd_err = np.repeat(t.vsd, Th, axis=2)  # [E,G,T*Theta]
             tp[o]["vsd"] += (match_greedy(vsd_err, t.gt_valid, vsd_th) >= 0).sum(axis=1)
-            tp[o]["mssd"] += (match_greedy(t.mssd, t.gt_valid, MSSD_THRESHOLDS * diameters[o]) >= 0).sum(axis=1)
-            tp[o]["mspd"] += (match_greedy(t.mspd, t.gt_valid, mspd_th) >= 0).sum(axis=1)
+            tp[o]["mssd"] += (match_greedy(t.mssd / diameters[o], t.gt_valid, MSSD_THRESHOLDS) >= 0).sum(axis=1)
+            tp[o]["mspd"] += (match_greedy(t.mspd * mspd_factor, t.gt_valid, MSPD_THRESHOLDS_PX) >= 0).sum(axis=1)
         else:
             tp[o]  # noqa: B018 (creates the zero entry)
         valid_idx = np.nonzero(t.gt_valid)[0]
