@@ -141,51 +141,53 @@ def evaluate(
 
     out: list[TargetErrors] = []
     n_eval = 0
-    bar = tqdm(sorted(by_image.items()), desc="eval", unit="im", disable=not progress)
-    for (scene_id, im_id), im_targets in bar:
-        rec = ds.image(split, scene_id, im_id)
-        if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
-            raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
-                                 "GT info (visib_fract) needed for every GT instance")
-        work = []  # (target, ests, gt indices)
-        for t in im_targets:
-            ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
-            gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
-            work.append((t, ests, gt_idx))
-        if not any(ests and gi for _, ests, gi in work):
-            for t, ests, gi in work:
-                out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
-                n_eval += len(ests)
-            continue
-        depth = ds.load_depth(rec)
-        h, w = depth.shape
-        im_width = im_width or w
-        K = rec.camera.K
-        dist_test = depth_to_distance(depth, K)
-        # Render every estimate and GT pose of this image once, in one batch.
-        ids, poses = [], []
-        for t, ests, gi in work:
-            if ests and gi:
-                ids += [t.obj_id] * (len(ests) + len(gi))
-                poses += [e.TCO for e in ests] + [rec.gt[i].TCO for i in gi]
-        if (w, h) not in renderers:
-            renderers[(w, h)] = ObjectRenderer(meshes)
-        renderer = renderers[(w, h)]
-        _, depths = renderer.render(ids, np.stack(poses), K, w, h, depth_only=True)
-        dists = [depth_to_distance(d, K) for d in depths]
-        k = 0
-        for t, ests, gi in work:
-            if not (ests and gi):
-                out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
-                n_eval += len(ests)
+    try:
+        bar = tqdm(sorted(by_image.items()), desc="eval", unit="im", disable=not progress)
+        for (scene_id, im_id), im_targets in bar:
+            rec = ds.image(split, scene_id, im_id)
+            if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
+                raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
+                                     "GT info (visib_fract) needed for every GT instance")
+            work = []  # (target, ests, gt indices)
+            for t in im_targets:
+                ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
+                gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
+                work.append((t, ests, gt_idx))
+            if not any(ests and gi for _, ests, gi in work):
+                for t, ests, gi in work:
+                    out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
+                    n_eval += len(ests)
                 continue
-            d_est, d_gt = dists[k:k + len(ests)], dists[k + len(ests):k + len(ests) + len(gi)]
-            k += len(ests) + len(gi)
-            out.append(_target_errors(t, ests, gi, rec, objs[t.obj_id], K, d_est, d_gt, dist_test, delta, visib_gt_min))
-            n_eval += len(ests)
-        bar.set_postfix(estimates=n_eval)
-    for r in renderers.values():
-        r.delete()
+            depth = ds.load_depth(rec)
+            h, w = depth.shape
+            im_width = im_width or w
+            K = rec.camera.K
+            dist_test = depth_to_distance(depth, K)
+            # Render every estimate and GT pose of this image once, in one batch.
+            ids, poses = [], []
+            for t, ests, gi in work:
+                if ests and gi:
+                    ids += [t.obj_id] * (len(ests) + len(gi))
+                    poses += [e.TCO for e in ests] + [rec.gt[i].TCO for i in gi]
+            if (w, h) not in renderers:
+                renderers[(w, h)] = ObjectRenderer(meshes)
+            renderer = renderers[(w, h)]
+            _, depths = renderer.render(ids, np.stack(poses), K, w, h, depth_only=True)
+            dists = [depth_to_distance(d, K) for d in depths]
+            k = 0
+            for t, ests, gi in work:
+                if not (ests and gi):
+                    out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
+                    n_eval += len(ests)
+                    continue
+                d_est, d_gt = dists[k:k + len(ests)], dists[k + len(ests):k + len(ests) + len(gi)]
+                k += len(ests) + len(gi)
+                out.append(_target_errors(t, ests, gi, rec, objs[t.obj_id], K, d_est, d_gt, dist_test, delta, visib_gt_min))
+                n_eval += len(ests)
+            bar.set_postfix(estimates=n_eval)
+    finally:
+        for r in renderers.values():
+            r.delete()
     scores = score_targets(out, {o: d.diameter for o, d in objs.items()}, im_width, symmetric)
     return EvalResult(ds.name, split, str(results_csv), len(estimates), n_eval, delta, im_width, visib_gt_min, scores, out,
                       time.perf_counter() - t0)

@@ -228,7 +228,8 @@ def score_targets(
     for o in sorted(tp):
         per_object[o] = ObjectScores(
             o, n_gt[o], n_est[o], _recall(tp[o]["vsd"], n_gt[o]).reshape(T, Th), _recall(tp[o]["mssd"], n_gt[o]),
-            _recall(tp[o]["mspd"], n_gt[o]), auc_threshold_curve(np.array(auc_err["add_s"][o])), auc_threshold_curve(np.array(auc_err["adi"][o])),
+            _recall(tp[o]["mspd"], n_gt[o]), auc_threshold_curve(np.array(auc_err["add_s"][o])),
+            auc_threshold_curve(np.array(auc_err["adi"][o])),
         )
     n_all = sum(n_gt.values())
     tot = zeros()
@@ -238,5 +239,6 @@ def score_targets(
     all_err = {k: np.array([e for o in v for e in v[o]]) for k, v in auc_err.items()}
     return Scores(
         n_all, sum(n_est.values()), _recall(tot["vsd"], n_all).reshape(T, Th), _recall(tot["mssd"], n_all),
-        _recall(tot["mspd"], n_all), mspd_th, auc_threshold_curve(all_err["add_s"]), auc_threshold_curve(all_err["adi"]), per_object,
+        _recall(tot["mspd"], n_all), mspd_th, auc_threshold_curve(all_err["add_s"]),
+        auc_threshold_curve(all_err["adi"]), per_object,
     )
