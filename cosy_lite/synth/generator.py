@@ -218,7 +218,7 @@ def generate(cfg: SynthConfig, root: str | Path, splits: tuple[str, ...] = ("tra
     stats = {"images": n_images, "seconds": 0.0}
     t0 = time.perf_counter()
     bar = tqdm(total=n_images, desc=f"generate {cfg.name}", unit="img", disable=not progress)
-    ctx = mp.get_context("fork")
+    ctx = mp.get_context("spawn")  # a forked child would inherit the parent's GL context and hang
     pool = ctx.Pool(cfg.workers) if cfg.workers > 1 else None
     try:
         for scene_dir, tasks in todo:
