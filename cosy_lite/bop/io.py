@@ -312,8 +312,8 @@ def scene_camera_to_json(cams: dict[int, CameraRecord]) -> dict[str, Any]:
     return out
 
 
-def load_scene_gt(path: str | Path, valid_obj_ids: set[int] | None = None) -> dict[int, list[GtPose]]:
-    path = Path(path)
+def _load_per_image_lists(path: Path, what: str, parse_entry) -> dict[int, list]:
+    """A scene file keyed by image id whose values are lists; ``parse_entry(d, where)`` per entry."""
     raw = load_json(path)
     if not isinstance(raw, dict):
         raise BopFormatError(path, "", "expected a JSON object keyed by image id")
@@ -321,24 +321,29 @@ def load_scene_gt(path: str | Path, valid_obj_ids: set[int] | None = None) -> di
     for key, lst in raw.items():
         im_id = _im_key(path, key)
         if not isinstance(lst, list):
-            raise BopFormatError(path, key, "expected a list of GT instances")
-        poses = []
-        for i, d in enumerate(lst):
-            where = f"{key}[{i}]"
-            obj_id = _check_obj_id(path, f"{where}.obj_id", _get(path, d, "obj_id", where), valid_obj_ids)
-            R = _numbers(path, f"{where}.cam_R_m2c", _get(path, d, "cam_R_m2c", where), 9).reshape(3, 3)
-            _check_rotation(path, f"{where}.cam_R_m2c", R)
-            t = _numbers(path, f"{where}.cam_t_m2c", _get(path, d, "cam_t_m2c", where), 3)
-            if np.linalg.norm(t) < MIN_PLAUSIBLE_T_MM:
-                raise BopFormatError(
-                    path, f"{where}.cam_t_m2c",
-                    f"{t.tolist()} is implausibly close for millimetres (metres? BOP uses mm)",
-                )
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, t * MM
-            poses.append(GtPose(obj_id, T))
-        out[im_id] = poses
+            raise BopFormatError(path, key, f"expected a list of {what}")
+        out[im_id] = [parse_entry(d, f"{key}[{i}]") for i, d in enumerate(lst)]
     return out
+
+
+def load_scene_gt(path: str | Path, valid_obj_ids: set[int] | None = None) -> dict[int, list[GtPose]]:
+    path = Path(path)
+
+    def parse(d: Any, where: str) -> GtPose:
+        obj_id = _check_obj_id(path, f"{where}.obj_id", _get(path, d, "obj_id", where), valid_obj_ids)
+        R = _numbers(path, f"{where}.cam_R_m2c", _get(path, d, "cam_R_m2c", where), 9).reshape(3, 3)
+        _check_rotation(path, f"{where}.cam_R_m2c", R)
+        t = _numbers(path, f"{where}.cam_t_m2c", _get(path, d, "cam_t_m2c", where), 3)
+        if np.linalg.norm(t) < MIN_PLAUSIBLE_T_MM:
+            raise BopFormatError(
+                path, f"{where}.cam_t_m2c",
+                f"{t.tolist()} is implausibly close for millimetres (metres? BOP uses mm)",
+            )
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t * MM
+        return GtPose(obj_id, T)
+
+    return _load_per_image_lists(path, "GT instances", parse)
 
 
 def scene_gt_to_json(gts: dict[int, list[GtPose]]) -> dict[str, Any]:
@@ -357,28 +362,19 @@ def scene_gt_to_json(gts: dict[int, list[GtPose]]) -> dict[str, Any]:
 
 def load_scene_gt_info(path: str | Path) -> dict[int, list[GtInfo]]:
     path = Path(path)
-    raw = load_json(path)
-    if not isinstance(raw, dict):
-        raise BopFormatError(path, "", "expected a JSON object keyed by image id")
-    out = {}
-    for key, lst in raw.items():
-        im_id = _im_key(path, key)
-        if not isinstance(lst, list):
-            raise BopFormatError(path, key, "expected a list of GT info entries")
-        infos = []
-        for i, d in enumerate(lst):
-            where = f"{key}[{i}]"
-            vals = {}
-            for fld in ("bbox_obj", "bbox_visib"):
-                vals[fld] = [int(v) for v in _numbers(path, f"{where}.{fld}", _get(path, d, fld, where), 4)]
-            for fld in ("px_count_all", "px_count_valid", "px_count_visib"):
-                vals[fld] = int(_numbers(path, f"{where}.{fld}", _get(path, d, fld, where), 1)[0])
-            vf = float(_numbers(path, f"{where}.visib_fract", _get(path, d, "visib_fract", where), 1)[0])
-            if not 0.0 <= vf <= 1.0:
-                raise BopFormatError(path, f"{where}.visib_fract", f"must be in [0, 1], got {vf}")
-            infos.append(GtInfo(visib_fract=vf, **vals))
-        out[im_id] = infos
-    return out
+
+    def parse(d: Any, where: str) -> GtInfo:
+        vals: dict[str, Any] = {}
+        for fld in ("bbox_obj", "bbox_visib"):
+            vals[fld] = [int(v) for v in _numbers(path, f"{where}.{fld}", _get(path, d, fld, where), 4)]
+        for fld in ("px_count_all", "px_count_valid", "px_count_visib"):
+            vals[fld] = int(_numbers(path, f"{where}.{fld}", _get(path, d, fld, where), 1)[0])
+        vf = float(_numbers(path, f"{where}.visib_fract", _get(path, d, "visib_fract", where), 1)[0])
+        if not 0.0 <= vf <= 1.0:
+            raise BopFormatError(path, f"{where}.visib_fract", f"must be in [0, 1], got {vf}")
+        return GtInfo(visib_fract=vf, **vals)
+
+    return _load_per_image_lists(path, "GT info entries", parse)
 
 
 def scene_gt_info_to_json(infos: dict[int, list[GtInfo]]) -> dict[str, Any]:
