@@ -121,8 +121,32 @@ def auc_threshold_curve(errors: np.ndarray, max_error: float = AUC_MAX_M) -> flo
     return float(np.clip(max_error - np.nan_to_num(e, nan=np.inf), 0.0, None).mean() / max_error)
 
 
+class _AverageRecalls:
+    """AR_VSD, AR_MSSD, AR_MSPD (means of the recall arrays) and AR (their mean)."""
+
+    recall_vsd: np.ndarray
+    recall_mssd: np.ndarray
+    recall_mspd: np.ndarray
+
+    @property
+    def ar_vsd(self) -> float:
+        return float(self.recall_vsd.mean())
+
+    @property
+    def ar_mssd(self) -> float:
+        return float(self.recall_mssd.mean())
+
+    @property
+    def ar_mspd(self) -> float:
+        return float(self.recall_mspd.mean())
+
+    @property
+    def ar(self) -> float:
+        return (self.ar_vsd + self.ar_mssd + self.ar_mspd) / 3.0
+
+
 @dataclass
-class ObjectScores:
+class ObjectScores(_AverageRecalls):
     """Scores of one object (its targets only)."""
 
     obj_id: int
@@ -134,25 +158,9 @@ class ObjectScores:
     auc_add_s: float  # ADD, or ADI for symmetric objects
     auc_adi: float
 
-    @property
-    def ar_vsd(self) -> float:
-        return float(self.recall_vsd.mean())
-
-    @property
-    def ar_mssd(self) -> float:
-        return float(self.recall_mssd.mean())
-
-    @property
-    def ar_mspd(self) -> float:
-        return float(self.recall_mspd.mean())
-
-    @property
-    def ar(self) -> float:
-        return (self.ar_vsd + self.ar_mssd + self.ar_mspd) / 3.0
-
 
 @dataclass
-class Scores:
+class Scores(_AverageRecalls):
     """Dataset-level scores; recalls pooled over all targets."""
 
     n_targets: int
@@ -164,22 +172,6 @@ class Scores:
     auc_add_s: float
     auc_adi: float
     per_object: dict[int, ObjectScores] = field(default_factory=dict)
-
-    @property
-    def ar_vsd(self) -> float:
-        return float(self.recall_vsd.mean())
-
-    @property
-    def ar_mssd(self) -> float:
-        return float(self.recall_mssd.mean())
-
-    @property
-    def ar_mspd(self) -> float:
-        return float(self.recall_mspd.mean())
-
-    @property
-    def ar(self) -> float:
-        return (self.ar_vsd + self.ar_mssd + self.ar_mspd) / 3.0
 
 
 def _recall(tps: np.ndarray, n: int) -> np.ndarray:
