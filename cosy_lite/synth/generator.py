@@ -57,6 +57,9 @@ class SynthConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
 
+    def split_config(self, split: str) -> SplitConfig:
+        return {"train_pbr": self.train, "test": self.test}[split]
+
 
 @dataclass
 class LayoutTask:
@@ -116,7 +119,7 @@ def render_layout(cfg: SynthConfig, root: Path, task: LayoutTask) -> dict[int, t
     T_CWs = sample_camera_poses(annotated_pos, task.n_views, rng, cfg.camera)
     views = st["renderer"].render_views(placed, T_CWs, K, rng, cfg.lighting)
 
-    split_cfg = getattr(cfg, "train" if task.split == "train_pbr" else "test")
+    split_cfg = cfg.split_config(task.split)
     scene_dir = root / task.split / f"{task.scene_id:06d}"
     records = {}
     for v, (T_CW, (rgb, depth, obj_depths)) in enumerate(zip(T_CWs, views)):
@@ -147,7 +150,7 @@ def _render_layout_job(args: tuple) -> dict[int, tuple]:
 
 def plan_split(cfg: SynthConfig, split: str) -> dict[int, list[LayoutTask]]:
     """scene_id -> its layouts. train_pbr: chunks of ``chunk_size`` images; test: one scene per layout."""
-    sc: SplitConfig = cfg.train if split == "train_pbr" else cfg.test
+    sc = cfg.split_config(split)
     plan: dict[int, list[LayoutTask]] = {}
     done, layout_idx = 0, 0
     while done < sc.n_images:
@@ -208,12 +211,10 @@ def generate(cfg: SynthConfig, root: str | Path, splits: tuple[str, ...] = ("tra
 
     todo: list[tuple[Path, list[LayoutTask]]] = []
     for split in splits:
-        sc = cfg.train if split == "train_pbr" else cfg.test
         for scene_id, tasks in plan_split(cfg, split).items():
             scene_dir = root / split / f"{scene_id:06d}"
             if not scene_is_complete(scene_dir, sum(t.n_views for t in tasks)):
                 todo.append((scene_dir, tasks))
-        del sc
     n_images = sum(t.n_views for _, tasks in todo for t in tasks)
     stats = {"images": n_images, "seconds": 0.0}
     t0 = time.perf_counter()
