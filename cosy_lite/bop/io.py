@@ -465,11 +465,16 @@ def depth_to_png_units(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     return q.astype(np.uint16)
 
 
-def save_depth(path: str | Path, depth_m: np.ndarray, depth_scale: float) -> None:
+def save_depth_png(path: str | Path, depth_png: np.ndarray) -> None:
+    """Write already quantised uint16 depth values (see :func:`depth_to_png_units`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), depth_to_png_units(depth_m, depth_scale)):
+    if not cv2.imwrite(str(path), depth_png):
         raise OSError(f"{path}: cannot write depth")
+
+
+def save_depth(path: str | Path, depth_m: np.ndarray, depth_scale: float) -> None:
+    save_depth_png(path, depth_to_png_units(depth_m, depth_scale))
 
 
 def load_mask(path: str | Path) -> np.ndarray:

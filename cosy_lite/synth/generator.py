@@ -125,9 +125,10 @@ def render_layout(cfg: SynthConfig, root: Path, task: LayoutTask) -> dict[int, t
     for v, (T_CW, (rgb, depth, obj_depths)) in enumerate(zip(T_CWs, views)):
         im_id = task.first_im_id + v
         io.save_image(scene_dir / "rgb" / f"{im_id:06d}{split_cfg.rgb_ext}", rgb, cfg.jpeg_quality)
-        io.save_depth(scene_dir / "depth" / f"{im_id:06d}.png", depth, cfg.depth_scale)
-        # Annotate against the depth exactly as stored (quantised), as the BOP toolkit would.
-        depth_stored = io.depth_to_png_units(depth, cfg.depth_scale).astype(np.float32) * np.float32(cfg.depth_scale * io.MM)
+        # Quantise once; annotate against the depth exactly as stored, as the BOP toolkit would.
+        depth_png = io.depth_to_png_units(depth, cfg.depth_scale)
+        io.save_depth_png(scene_dir / "depth" / f"{im_id:06d}.png", depth_png)
+        depth_stored = depth_png.astype(np.float32) * np.float32(cfg.depth_scale * io.MM)
         gts, infos = [], []
         for gt_idx, (obj_id, obj_depth) in enumerate(zip(obj_ids, obj_depths)):
             TCO = T_CW @ T_WOs[gt_idx]
