@@ -1,0 +1,1 @@
+"""Networks: backbones, the pose network (tensor in, tensor out), the detector, losses."""
