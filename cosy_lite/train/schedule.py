@@ -1,0 +1,34 @@
+"""Optimiser and learning-rate schedule: Adam, linear warm-up, step decay."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass
+class OptimConfig:
+    """Adam with linear warm-up from ``lr / warmup_steps`` to ``lr``, then x``decay_factor`` at each
+    step of ``decay_steps``; gradients clipped to ``clip_grad_norm`` (0 = no clipping)."""
+
+    lr: float = 3e-4
+    weight_decay: float = 0.0
+    warmup_steps: int = 100
+    decay_steps: list[int] = field(default_factory=list)
+    decay_factor: float = 0.1
+    clip_grad_norm: float = 10.0
+
+
+def lr_factor(step: int, cfg: OptimConfig) -> float:
+    """Multiplier of ``cfg.lr`` at optimisation step ``step`` (0-based)."""
+    warm = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
+    n_decays = sum(step >= s for s in cfg.decay_steps)
+    return warm * cfg.decay_factor**n_decays
+
+
+def build_optimizer(params, cfg: OptimConfig) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam over ``params`` and the LambdaLR implementing :func:`lr_factor` (stepped once per step)."""
+    optimizer = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, cfg))
+    return optimizer, scheduler
