@@ -1,0 +1,125 @@
+"""Fast MSSD/MSPD/ADD/ADI (hull, branch and bound, model-frame k-d tree) against the toolkit-style
+loops of ``pose_errors`` on random poses: equal to 1e-9."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from cosy_lite.bop.io import ModelInfo
+from cosy_lite.eval import pose_errors as pe
+from cosy_lite.eval.object_errors import ObjectErrors, farthest_point_order, hull_vertex_indices, min_of_max
+from cosy_lite.geometry.symmetries import symmetry_transforms
+
+K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
+
+
+def _random_rotation(rng: np.random.Generator, scale: float = np.pi) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = rng.uniform(0, scale)
+    Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * Kx + (1 - np.cos(a)) * Kx @ Kx
+
+
+def _can() -> tuple[np.ndarray, ModelInfo]:
+    """A can (cylinder, r 5 cm, h 12 cm, off-centre along z) with a dense surface: continuous z symmetry + flip."""
+    mesh = trimesh.creation.cylinder(radius=0.05, height=0.12, sections=64)
+    pts, _ = trimesh.sample.sample_surface_even(mesh, 1500, seed=0)
+    pts = np.concatenate([mesh.vertices, pts]) + [0.0, 0.0, 0.01]
+    flip = np.eye(4)
+    flip[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    flip[:3, 3] = [0.0, 0.0, 0.02]  # flips about the can centre z = 0.01
+    info = ModelInfo(1, float(np.linalg.norm([0.1, 0.12])), pts.min(0), np.ptp(pts, 0), flip[None],
+                     [(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0]))])
+    return pts, info
+
+
+def _lumpy() -> np.ndarray:
+    """A non-convex blob (many vertices inside the hull), no symmetry."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = 0.05 * (1.0 + 0.3 * np.sin(5 * d[:, 0]) * np.cos(3 * d[:, 1]))
+    return d * r[:, None] * [1.0, 0.7, 1.4]
+
+
+def _poses(rng: np.random.Generator, syms: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    gt = np.eye(4)
+    gt[:3, :3] = _random_rotation(rng)
+    gt[:3, 3] = [rng.normal(0, 0.1), rng.normal(0, 0.08), rng.uniform(0.4, 1.2)]
+    ests = []
+    for _ in range(n):
+        T = gt @ syms[rng.integers(len(syms))]  # near a symmetric copy, then perturbed
+        T[:3, :3] = _random_rotation(rng, rng.choice([0.02, 0.3, 3.0])) @ T[:3, :3]
+        T[:3, 3] += rng.normal(scale=rng.choice([0.002, 0.02]), size=3)
+        ests.append(T)
+    return np.stack(ests), gt
+
+
+@pytest.mark.parametrize("model", ["can", "lumpy"])
+def test_fast_errors_equal_the_reference_on_random_poses(model: str):
+    rng = np.random.default_rng(0)
+    if model == "can":
+        pts, info = _can()
+        syms = symmetry_transforms(info, 0.05)  # 63 rotations x 2 = 126 transforms
+        assert len(syms) == 126
+    else:
+        pts, syms = _lumpy(), np.eye(4)[None]
+    fast = ObjectErrors.from_model(pts, syms, info.diameter if model == "can" else 0.15)
+    for _ in range(8):
+        ests, gt = _poses(rng, syms, 3)
+        ref3, ref2 = pe.mssd_mspd(ests, gt, K, pts, syms)
+        got3, got2 = fast.mssd_mspd(ests, gt, K)
+        np.testing.assert_allclose(got3, ref3, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got2, ref2, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(fast.add(ests, gt), [pe.add(e, gt, pts) for e in ests], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(fast.adi(ests, gt), [pe.adi(e, gt, pts) for e in ests], rtol=0, atol=1e-9)
+
+
+def test_hull_keeps_the_extreme_vertices_only():
+    box = trimesh.creation.box(extents=[0.1, 0.06, 0.04]).subdivide().subdivide()  # face-interior vertices
+    pts = np.asarray(box.vertices)
+    idx = hull_vertex_indices(pts)
+    assert len(pts) > 8 and len(idx) == 8
+    assert np.allclose(np.abs(pts[idx]), [0.05, 0.03, 0.02])
+    # The MSSD maximum over the corners is the one over all vertices (the error is convex in v).
+    T = np.eye(4)
+    T[:3, :3] = _random_rotation(np.random.default_rng(1), 0.2)
+    T[:3, 3] = [0.001, 0.0, 0.5]
+    G = np.eye(4)
+    G[2, 3] = 0.5
+    assert ObjectErrors.from_model(pts, np.eye(4)[None], 0.12).mssd_mspd(T[None], G, K)[0][0] == pytest.approx(
+        pe.mssd(T, G, pts, np.eye(4)[None]), abs=1e-12)
+    # A flat point set has no 3D hull: every point is kept.
+    flat = np.c_[np.random.default_rng(0).random((20, 2)), np.zeros(20)]
+    assert len(hull_vertex_indices(flat)) == 20
+
+
+def test_farthest_point_order_spreads_samples():
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [0.1, 0, 0], [10, 0, 0], [5, 0, 0]])
+    np.testing.assert_array_equal(farthest_point_order(pts, 3), [3, 0, 4])  # 10 is farthest from the mean 3.22
+
+
+def test_min_of_max_prunes_but_stays_exact():
+    rng = np.random.default_rng(0)
+    full_values = rng.random(200) + 1.0
+    slack = rng.random((2, 200)) * 0.5  # bounds below the full values
+    calls: list[int] = []
+
+    def full(ks):
+        calls.extend(ks.tolist())
+        return full_values[ks]
+
+    best = min_of_max(200, lambda level, ks: full_values[ks] - slack[level, ks], full)
+    assert best == full_values.min()
+    assert len(set(calls)) < 100  # most symmetries never need the full maximum
+    assert min_of_max(1, None, lambda ks: np.array([7.0])) == 7.0
+
+
+def test_bad_inputs_raise():
+    with pytest.raises(ValueError, match="pts"):
+        ObjectErrors.from_model(np.zeros((3, 2)), np.eye(4)[None], 0.1)
+    with pytest.raises(ValueError, match="syms"):
+        ObjectErrors.from_model(np.zeros((3, 3)), np.zeros((0, 4, 4)), 0.1)
