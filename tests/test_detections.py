@@ -1,0 +1,175 @@
+"""BOP22 detection JSON (write, read, reject), oracle detections and COCO detection AP."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import bop_fixtures as fx
+from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.bop.detections import (
+    Detections, oracle_detections, read_detections_json, rle_to_mask, write_detections_json,
+)
+from cosy_lite.errors import BopFormatError
+from cosy_lite.eval.detection import coco_ground_truth, evaluate_detections, evaluate_detections_file
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> BopDataset:
+    return BopDataset(fx.write_tiny_bop(tmp_path_factory.mktemp("bop")))
+
+
+def _records(dataset: BopDataset):
+    return list(dataset.images(fx.SPLIT))
+
+
+def _oracle(dataset: BopDataset) -> dict[tuple[int, int], Detections]:
+    return {(r.scene_id, r.im_id): oracle_detections(dataset, r) for r in _records(dataset)}
+
+
+def test_oracle_detections_are_the_visible_gt(dataset):
+    rec = dataset.image(fx.SPLIT, fx.SCENE_ID, 1)
+    det = oracle_detections(dataset, rec)
+    assert det.obj_ids.tolist() == [1, 1, 2] and det.scores.tolist() == [1.0, 1.0, 1.0]
+    x, y, w, h = rec.gt_info[2].bbox_visib
+    assert det.boxes[2].tolist() == [x, y, x + w, y + h]
+    assert det.masks.shape == (3, fx.HEIGHT, fx.WIDTH) and det.masks.dtype == torch.bool
+    assert int(det.masks[2].sum()) == w * h and bool(det.masks[2, y, x]) and not det.masks[2, y - 1, x]
+    assert oracle_detections(dataset, rec, with_masks=False).masks is None
+
+
+def test_write_read_round_trip(dataset, tmp_path):
+    dets = _oracle(dataset)
+    extra = Detections(torch.tensor([[10.25, 20.5, 40.75, 80.0], [1.0, 2.0, 3.0, 4.0]]), torch.tensor([2, 1]),
+                       torch.tensor([0.25, 0.875]), torch.zeros(2, fx.HEIGHT, fx.WIDTH, dtype=torch.bool), time_s=0.125)
+    extra.masks[0, 20:80, 10:40] = True
+    extra.masks[1, 2:4, 1:3] = True
+    dets[(3, 7)] = extra
+    path = tmp_path / "cosylite_tiny-test.json"
+    write_detections_json(path, dets)
+    back = read_detections_json(path, valid_obj_ids=dataset.obj_ids, with_masks=True)
+    assert sorted(back) == sorted(dets)
+    for key, d in dets.items():
+        order = torch.argsort(-d.scores, stable=True)  # the reader sorts by decreasing score
+        b = back[key]
+        assert torch.equal(b.obj_ids, d.obj_ids[order]) and torch.equal(b.scores, d.scores[order])
+        assert torch.allclose(b.boxes, d.boxes[order], atol=1e-6)
+        assert torch.equal(b.masks, d.masks[order])
+        assert b.time_s == d.time_s
+    assert back[(3, 7)].obj_ids.tolist() == [1, 2] and back[(3, 7)].time_s == 0.125
+    assert read_detections_json(path)[(3, 7)].masks is None  # masks only when asked
+
+
+def test_file_is_valid_bop22_coco_results(dataset, tmp_path):
+    from pycocotools.coco import COCO
+
+    path = tmp_path / "cosylite_tiny-test.json"
+    write_detections_json(path, _oracle(dataset))
+    entries = json.loads(path.read_text())
+    assert len(entries) == 5
+    for e in entries:  # the checks of bop_toolkit inout.check_coco_results (bop22, segm)
+        assert set(e) == {"scene_id", "image_id", "category_id", "score", "bbox", "segmentation", "time"}
+        assert all(isinstance(e[k], int) for k in ("scene_id", "image_id", "category_id"))
+        assert isinstance(e["score"], float) and isinstance(e["time"], float)
+        assert isinstance(e["bbox"], list) and len(e["bbox"]) == 4
+        assert isinstance(e["segmentation"]["counts"], str) and e["segmentation"]["size"] == [fx.HEIGHT, fx.WIDTH]
+    gt, index = coco_ground_truth(dataset, _records(dataset))
+    coco = COCO()
+    coco.dataset = gt
+    coco.createIndex()
+    for e in entries:
+        e["image_id"] = index[(e["scene_id"], e["image_id"])]
+    res = coco.loadRes(entries)  # pycocotools accepts the file's entries
+    assert len(res.anns) == 5
+    first = res.anns[1]
+    x, y, w, h = first["bbox"]
+    assert res.annToMask(first).sum() == w * h
+
+
+def _valid_entry() -> dict:
+    return {"scene_id": 0, "image_id": 1, "category_id": 2, "score": 0.5, "bbox": [1.0, 2.0, 30.0, 40.0],
+            "segmentation": {"size": [4, 3], "counts": [2, 3, 7]}, "time": 0.1}
+
+
+MALFORMED = [  # (change to the second entry, field named by the error)
+    (lambda e: e.pop("score"), "[1].score"),
+    (lambda e: e.pop("scene_id"), "[1].scene_id"),
+    (lambda e: e.update(score="high"), "[1].score"),
+    (lambda e: e.update(score=float("nan")), "[1].score"),
+    (lambda e: e.update(image_id=1.5), "[1].image_id"),
+    (lambda e: e.update(category_id=99), "[1].category_id"),
+    (lambda e: e.update(category_id="2"), "[1].category_id"),
+    (lambda e: e.update(bbox=[1.0, 2.0, 3.0]), "[1].bbox"),
+    (lambda e: e.update(bbox=[1.0, 2.0, -3.0, 4.0]), "[1].bbox"),
+    (lambda e: e.update(segmentation={"counts": "abc"}), "[1].segmentation"),
+    (lambda e: e.update(segmentation={"size": [4, 3], "counts": [2, 3]}), "[1].segmentation.counts"),
+    (lambda e: e.update(time="fast"), "[1].time"),
+]
+
+
+@pytest.mark.parametrize("change,field", MALFORMED, ids=[f for _, f in MALFORMED])
+def test_malformed_entries_name_the_field(tmp_path, change, field):
+    bad = _valid_entry()
+    change(bad)
+    path = tmp_path / "dets.json"
+    path.write_text(json.dumps([_valid_entry(), bad]))
+    with pytest.raises(BopFormatError) as err:
+        read_detections_json(path, valid_obj_ids=[1, 2])
+    assert err.value.field == field and err.value.path == str(path)
+
+
+def test_valid_uncompressed_entry_and_bad_files(tmp_path):
+    path = tmp_path / "dets.json"
+    path.write_text(json.dumps([_valid_entry()]))
+    det = read_detections_json(path, valid_obj_ids=[2], with_masks=True)[(0, 1)]
+    assert det.boxes.tolist() == [[1.0, 2.0, 31.0, 42.0]]
+    assert det.masks[0].T.flatten().tolist() == [False] * 2 + [True] * 3 + [False] * 7  # column-major runs
+    seg_only = {k: v for k, v in _valid_entry().items() if k != "bbox"}
+    path.write_text(json.dumps([seg_only]))
+    assert read_detections_json(path)[(0, 1)].boxes.tolist() == [[0.0, 0.0, 2.0, 4.0]]  # box of the mask
+    path.write_text(json.dumps({"0": []}))
+    with pytest.raises(BopFormatError, match="JSON list"):
+        read_detections_json(path)
+    path.write_text("[{")
+    with pytest.raises(BopFormatError, match="malformed JSON"):
+        read_detections_json(path)
+    with pytest.raises(BopFormatError, match="not found"):
+        read_detections_json(tmp_path / "missing.json")
+
+
+def test_rle_helpers_agree():
+    m = np.zeros((5, 7), bool)
+    m[1:4, 2:6] = True
+    assert (rle_to_mask({"size": [5, 7], "counts": [11, 3, 2, 3, 2, 3, 2, 3, 6]}) == m).all()
+
+
+def test_gt_as_detections_scores_one(dataset, tmp_path):
+    scores = evaluate_detections(dataset, _records(dataset), _oracle(dataset))
+    assert [scores.ap, scores.ap50, scores.ap75, scores.mask_ap, scores.mask_ap50] == pytest.approx([1.0] * 5)
+    assert (scores.n_images, scores.n_gt, scores.n_detections) == (2, 5, 5)
+    path = tmp_path / "oracle_tiny-test.json"
+    write_detections_json(path, _oracle(dataset))
+    assert evaluate_detections_file(dataset, _records(dataset), path).mask_ap == pytest.approx(1.0)
+    boxes_only = {k: Detections(d.boxes, d.obj_ids, d.scores) for k, d in _oracle(dataset).items()}
+    s = evaluate_detections(dataset, _records(dataset), boxes_only)
+    assert s.ap == pytest.approx(1.0) and math.isnan(s.mask_ap)
+    assert evaluate_detections(dataset, _records(dataset), {}).ap == 0.0
+
+
+def test_shifted_box_gives_the_known_ap(dataset):
+    rec = dataset.image(fx.SPLIT, fx.SCENE_ID, 0)  # obj 1 and obj 2, one instance each
+    det = oracle_detections(dataset, rec)
+    x, y, w, h = rec.gt_info[0].bbox_visib
+    dx = round(0.19 * w)
+    iou = (w - dx) / (w + dx)
+    assert 0.65 < iou < 0.70  # passes IoU thresholds 0.50, 0.55, 0.60, 0.65: AP 4/10 for obj 1
+    det.boxes[0, [0, 2]] += dx
+    det.masks[0] = torch.roll(det.masks[0], dx, dims=1)
+    assert not det.masks[0, :, :dx].any()  # no wrap-around: the mask IoU is the same
+    s = evaluate_detections(dataset, [rec], {(rec.scene_id, rec.im_id): det})
+    assert [s.ap, s.ap50, s.ap75] == pytest.approx([(1.0 + 0.4) / 2, 1.0, 0.5])
+    assert [s.mask_ap, s.mask_ap50] == pytest.approx([s.ap, 1.0])
