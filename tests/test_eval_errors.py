@@ -193,3 +193,17 @@ def test_mssd_mspd_equal_the_toolkit_loops_with_continuous_symmetry():
     m3, m2 = pe.mssd_mspd(est[None], gt, K, pts, syms)
     assert m3[0] == pytest.approx(loop3, abs=1e-12) and m2[0] == pytest.approx(loop2, abs=1e-9)
     assert m3[0] <= np.linalg.norm([0.002, 0.001, 0.003]) + 1e-12
+
+
+def test_vsd_costs_normalised_by_diameter():
+    # Cost 0.03 m (float32 maps: 0.02999997); diameter 0.2 -> 0.15 x diameter: a miss for tau 0.10
+    # and 0.14 (cost >= tau), a match for 0.16. Same as tau x diameter in metres.
+    est, gt, test = _maps(est_depth=0.83)
+    np.testing.assert_allclose(pe.vsd(est, gt, test, DELTA, [0.10, 0.14, 0.16], diameter=0.2), [1.0, 1.0, 0.0])
+    np.testing.assert_allclose(pe.vsd(est, gt, test, DELTA, [0.02, 0.028, 0.032]), [1.0, 1.0, 0.0])
+
+
+def test_sphere_projections_at_zero_depth_do_not_overlap():
+    # The toolkit returns False when a centre has z = 0 (no projection), before dividing.
+    assert not pe.sphere_projections_overlap(0.05, np.array([0.0, 0, 0]), np.array([0.0, 0, 1]))
+    assert pe.sphere_projections_overlap(0.05, np.array([0.0, 0, 2]), np.array([0.0, 0, 1]))

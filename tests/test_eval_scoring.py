@@ -177,6 +177,26 @@ def test_higher_scored_wrong_estimate_is_the_one_evaluated(root: Path):
     assert _evaluate(root, ests + [wrong]).scores.ar == pytest.approx(1.0)
 
 
+def test_equal_scores_keep_file_order(root: Path):
+    # The toolkit sorts with Python's stable sorted(..., reverse=True): on equal scores the
+    # estimate written first is the one kept by inst_count = 1.
+    ests = _gt_estimates()
+    wrong = PoseEstimate(0, 0, 1, ests[0].score, ests[0].TCO.copy(), 0.1)
+    wrong.TCO[:3, 3] += [0.2, 0.0, 0.0]
+    assert _evaluate(root, [wrong] + ests).scores.ar == pytest.approx(0.8)
+    assert _evaluate(root, ests + [wrong]).scores.ar == pytest.approx(1.0)
+
+
+def test_repeated_target_entry_counts_once(root: Path):
+    # The toolkit keys targets by (scene, image, object): a repeated entry replaces the first.
+    def repeat(targets):
+        targets.append(dict(targets[2], inst_count=1))  # (0, 1, 1) again, now with inst_count 1
+
+    edit_json(root / "test_targets_bop19.json", repeat)
+    r = _evaluate(root, _gt_estimates())
+    assert r.scores.n_targets == 4 and r.n_estimates_evaluated == 4 and r.scores.ar == pytest.approx(1.0)
+
+
 def test_gt_with_low_visibility_is_not_a_target(root: Path):
     def low(d):
         d["1"][0]["visib_fract"] = 0.05  # im 1, first obj-1 instance

@@ -1,9 +1,20 @@
 """Evaluate a BOP19 results CSV against a BOP dataset: errors of every evaluated estimate, then scores.
 
-Follows bop_toolkit ``eval_bop19_pose.py``: only the BOP19 targets are evaluated; per target the
-top ``inst_count`` estimates by score (stable sort, CSV order on ties) are compared with every GT
-instance of the object in the image. Models are the ``models_eval`` meshes; each estimate and
-each GT pose is rendered once (depth only); symmetry sets and vertices are prepared once per object.
+The rules of bop_toolkit ``eval_bop19_pose.py`` (with ``eval_calc_errors.py``,
+``eval_calc_scores.py``, ``pose_matching.py``, ``score.py``), which this module follows:
+
+* Only targets of ``test_targets_bop19.json`` are evaluated, keyed by (scene, image, object): a
+  repeated entry replaces the earlier one. Estimates of other images or objects are ignored.
+* Per target, the estimates are sorted by decreasing score with a stable sort (file order on equal
+  scores) and the first ``inst_count`` are evaluated (``n_top = -1``); a target without estimates
+  keeps its GT instances as misses.
+* Each evaluated estimate is compared with every GT instance of its object in the image (see
+  :mod:`cosy_lite.eval.image_errors` for VSD, MSSD, MSPD and the toolkit's shortcuts).
+  Models are the ``models_eval`` meshes; symmetry sets as ``misc.get_symmetry_transformations``
+  with ``max_sym_disc_step = 0.01``; VSD delta from the dataset table (15 mm, ITODD 5 mm),
+  tau = 0.05..0.5 x diameter, costs normalised by the diameter.
+* Scoring (:mod:`cosy_lite.eval.scoring`): valid GT, greedy matching per threshold, recall
+  pooled over the dataset, AR = mean over thresholds, no rounding.
 """
 
 from __future__ import annotations
@@ -17,9 +28,12 @@ import numpy as np
 
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.results import PoseEstimate, read_results_csv
+from cosy_lite.bop.io import Target
 from cosy_lite.errors import BopFormatError
-from cosy_lite.eval import pose_errors
-from cosy_lite.eval.scoring import VISIB_GT_MIN, VSD_TAUS, Scores, TargetErrors, score_targets, valid_gt
+from cosy_lite.eval.depth_renderer import WindowDepthRenderer
+from cosy_lite.eval.image_errors import ImageErrors
+from cosy_lite.eval.object_errors import ObjectErrors
+from cosy_lite.eval.scoring import VISIB_GT_MIN, Scores, TargetErrors, score_targets, valid_gt
 
 
 @dataclass
@@ -40,7 +54,7 @@ class EvalResult:
 
     def to_dict(self) -> dict:
         """JSON-ready dict with every number (thresholds, recalls, AR, per-object scores)."""
-        from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_THETAS
+        from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_TAUS, VSD_THETAS
 
         s = self.scores
 
@@ -68,19 +82,24 @@ class EvalResult:
         }
 
 
-@dataclass
-class _ObjectData:
-    pts: np.ndarray  # [N,3] models_eval vertices (m)
-    syms: np.ndarray  # [S,4,4]
-    diameter: float  # m
-
-
 def _top_estimates(estimates: list[PoseEstimate]) -> dict[tuple[int, int, int], list[PoseEstimate]]:
-    """(scene, im, obj) -> estimates sorted by decreasing score (stable: file order on ties)."""
+    """(scene, im, obj) -> estimates sorted by decreasing score (stable: file order on ties, as the
+    toolkit's ``sorted(..., reverse=True)``)."""
     out: dict[tuple[int, int, int], list[PoseEstimate]] = defaultdict(list)
     for e in estimates:
         out[(e.scene_id, e.im_id, e.obj_id)].append(e)
-    return {k: sorted(v, key=lambda e: -e.score) for k, v in out.items()}
+    return {k: sorted(v, key=lambda e: e.score, reverse=True) for k, v in out.items()}
+
+
+def _targets_by_image(targets: list[Target]) -> dict[tuple[int, int], list[Target]]:
+    """(scene, im) -> targets in file order; a repeated (scene, im, obj) keeps its last entry (the toolkit's dict)."""
+    last: dict[tuple[int, int, int], Target] = {}
+    for t in targets:
+        last[(t.scene_id, t.im_id, t.obj_id)] = t
+    out: dict[tuple[int, int], list[Target]] = defaultdict(list)
+    for t in last.values():
+        out[(t.scene_id, t.im_id)].append(t)
+    return out
 
 
 def evaluate(
@@ -110,9 +129,7 @@ def evaluate(
     from tqdm import tqdm
 
     from cosy_lite.bop.params import DATASETS
-    from cosy_lite.geometry.depth import depth_to_distance
     from cosy_lite.geometry.symmetries import symmetry_transforms
-    from cosy_lite.render.object_renderer import ObjectRenderer
 
     t0 = time.perf_counter()
     ds = BopDataset(Path(dataset_root), name or "")
@@ -122,22 +139,26 @@ def evaluate(
     symmetric = params.symmetric_obj_ids if params is not None else ()
     estimates = read_results_csv(results_csv)
     top = _top_estimates(estimates)
-    targets = ds.test_targets()
-    by_image: dict[tuple[int, int], list] = defaultdict(list)
-    for t in targets:
-        by_image[(t.scene_id, t.im_id)].append(t)
+    by_image = _targets_by_image(ds.test_targets())
 
     info = ds.models_info
-    target_objs = sorted({t.obj_id for t in targets})
+    target_objs = sorted({t.obj_id for ts in by_image.values() for t in ts})
     meshes = {o: ds.load_model(o, eval=True) for o in target_objs}
     objs = {
-        o: _ObjectData(np.asarray(meshes[o].vertices, dtype=np.float64),
-                       symmetry_transforms(info[o], max_sym_disc_step, include_zero_angle=sym_zero_angle), info[o].diameter)
+        o: ObjectErrors.from_model(np.asarray(meshes[o].vertices, dtype=np.float64),
+                                   symmetry_transforms(info[o], max_sym_disc_step, include_zero_angle=sym_zero_angle),
+                                   info[o].diameter)
         for o in target_objs
     }
-    renderers: dict[tuple[int, int], ObjectRenderer] = {}  # one per image size (GL meshes bind to one context)
     sp = ds.split_params(split)
     im_width = sp.im_size[0] if sp is not None else 0
+    renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
+
+    def renderer(w: int, h: int) -> WindowDepthRenderer:
+        if (w, h) not in renderers:
+            renderers[(w, h)] = WindowDepthRenderer(
+                {o: (np.asarray(m.vertices), np.asarray(m.faces)) for o, m in meshes.items()}, w, h)
+        return renderers[(w, h)]
 
     out: list[TargetErrors] = []
     n_eval = 0
@@ -148,80 +169,28 @@ def evaluate(
             if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
                 raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
                                      "GT info (visib_fract) needed for every GT instance")
-            work = []  # (target, ests, gt indices)
+            size = sp.im_size if sp is not None else _image_size(ds, rec)
+            im_width = im_width or size[0]
+            image = ImageErrors(renderer(*size), lambda rec=rec: ds.load_depth(rec), rec.camera.K, delta)
             for t in im_targets:
                 ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
                 gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
-                work.append((t, ests, gt_idx))
-            if not any(ests and gi for _, ests, gi in work):
-                for t, ests, gi in work:
-                    out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
-                    n_eval += len(ests)
-                continue
-            depth = ds.load_depth(rec)
-            h, w = depth.shape
-            im_width = im_width or w
-            K = rec.camera.K
-            dist_test = depth_to_distance(depth, K)
-            # Render every estimate and GT pose of this image once, in one batch.
-            ids, poses = [], []
-            for t, ests, gi in work:
-                if ests and gi:
-                    ids += [t.obj_id] * (len(ests) + len(gi))
-                    poses += [e.TCO for e in ests] + [rec.gt[i].TCO for i in gi]
-            if (w, h) not in renderers:
-                renderers[(w, h)] = ObjectRenderer(meshes)
-            renderer = renderers[(w, h)]
-            _, depths = renderer.render(ids, np.stack(poses), K, w, h, depth_only=True)
-            dists = [depth_to_distance(d, K) for d in depths]
-            k = 0
-            for t, ests, gi in work:
-                if not (ests and gi):
-                    out.append(_errors_without_render(t, ests, gi, rec, visib_gt_min))
-                    n_eval += len(ests)
-                    continue
-                d_est, d_gt = dists[k:k + len(ests)], dists[k + len(ests):k + len(ests) + len(gi)]
-                k += len(ests) + len(gi)
-                out.append(_target_errors(t, ests, gi, rec, objs[t.obj_id], K, d_est, d_gt, dist_test, delta, visib_gt_min))
+                pair = image.target(t.obj_id, objs[t.obj_id], ests, [rec.gt[i].TCO for i in gt_idx], gt_idx)
+                gt_valid = valid_gt(np.array([rec.gt_info[i].visib_fract for i in gt_idx]), t.inst_count, visib_gt_min)
+                out.append(TargetErrors(scene_id, im_id, t.obj_id, t.inst_count,
+                                        np.array([e.score for e in ests], dtype=np.float64), gt_valid,
+                                        pair.vsd, pair.mssd, pair.mspd, pair.add, pair.adi))
                 n_eval += len(ests)
             bar.set_postfix(estimates=n_eval)
     finally:
         for r in renderers.values():
-            r.delete()
+            r.close()
     scores = score_targets(out, {o: d.diameter for o, d in objs.items()}, im_width, symmetric)
-    return EvalResult(ds.name, split, str(results_csv), len(estimates), n_eval, delta, im_width, visib_gt_min, scores, out,
-                      time.perf_counter() - t0)
+    return EvalResult(ds.name, split, str(results_csv), len(estimates), n_eval, delta, im_width, visib_gt_min, scores,
+                      out, time.perf_counter() - t0)
 
 
-def _gt_valid(rec, gt_idx: list[int], inst_count: int, visib_gt_min: float) -> np.ndarray:
-    return valid_gt(np.array([rec.gt_info[i].visib_fract for i in gt_idx]), inst_count, visib_gt_min)
-
-
-def _errors_without_render(t, ests, gt_idx, rec, visib_gt_min: float) -> TargetErrors:
-    """A target with no estimate or no GT instance: nothing to compare."""
-    te = TargetErrors.empty(t.scene_id, t.im_id, t.obj_id, t.inst_count, _gt_valid(rec, gt_idx, t.inst_count, visib_gt_min))
-    te.scores = np.array([e.score for e in ests], dtype=np.float64)
-    E, G = len(ests), len(gt_idx)  # one of them is 0
-    te.vsd, te.mssd, te.mspd, te.add, te.adi = np.ones((E, G, len(VSD_TAUS))), *(np.full((E, G), np.inf) for _ in range(4))
-    return te
-
-
-def _target_errors(t, ests, gt_idx, rec, obj: _ObjectData, K, d_est, d_gt, dist_test, delta, visib_gt_min) -> TargetErrors:
-    E, G = len(ests), len(gt_idx)
-    vsd = np.ones((E, G, len(VSD_TAUS)))
-    mssd, mspd, add, adi = (np.full((E, G), np.inf) for _ in range(4))
-    taus = VSD_TAUS * obj.diameter
-    T_est_all = np.stack([e.TCO for e in ests])
-    for g, gi in enumerate(gt_idx):
-        T_gt = rec.gt[gi].TCO
-        mssd[:, g], mspd[:, g] = pose_errors.mssd_mspd(T_est_all, T_gt, K, obj.pts, obj.syms)
-        for e, T_est in enumerate(T_est_all):
-            if pose_errors.sphere_projections_overlap(0.5 * obj.diameter, T_est[:3, 3], T_gt[:3, 3]):
-                vsd[e, g] = pose_errors.vsd(d_est[e], d_gt[g], dist_test, delta, taus)
-            # The toolkit's shortcut: MSSD is inf when the bounding spheres do not overlap.
-            if np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]) >= obj.diameter:
-                mssd[e, g] = np.inf
-            add[e, g] = pose_errors.add(T_est, T_gt, obj.pts)
-            adi[e, g] = pose_errors.adi(T_est, T_gt, obj.pts)
-    return TargetErrors(t.scene_id, t.im_id, t.obj_id, t.inst_count, np.array([e.score for e in ests], dtype=np.float64),
-                        _gt_valid(rec, gt_idx, t.inst_count, visib_gt_min), vsd, mssd, mspd, add, adi)
+def _image_size(ds: BopDataset, rec) -> tuple[int, int]:
+    """(width, height) of a test image without a parameter-table entry: from its depth image."""
+    h, w = ds.load_depth(rec).shape
+    return w, h

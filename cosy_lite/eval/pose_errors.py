@@ -1,8 +1,10 @@
-"""Pose errors of the BOP Challenge (VSD, MSSD, MSPD) and the classic ADD / ADI, in metres.
+"""Pose errors of the BOP Challenge (VSD, MSSD, MSPD) and the classic ADD / ADI, in metres: the definitions.
 
 Semantics follow bop_toolkit ``pose_error.py`` and ``eval_calc_errors.py`` (BOP 2019-2020 paper,
 Sec. 2): poses are object-to-camera ``TCO`` [4,4] (t in m), model points are ``models_eval``
 vertices [N,3] in m, a symmetry ``S`` [4,4] maps model coordinates to model coordinates.
+These functions are written as the toolkit's loops and serve as the reference;
+:mod:`cosy_lite.eval.object_errors` computes the same values much faster for the evaluator.
 """
 
 from __future__ import annotations
@@ -116,33 +118,46 @@ def adi(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray) -> float:
 def sphere_projections_overlap(radius: float, t_est: np.ndarray, t_gt: np.ndarray) -> bool:
     """Whether the image projections of spheres of ``radius`` at centres ``t_est``, ``t_gt`` [3] (m) may overlap.
 
-    The toolkit's conservative shortcut: VSD is 1 for every tau when they do not.
+    The toolkit's approximate test (``misc.overlapping_sphere_projections``): False if a centre
+    has z = 0, else ``|p_e - p_g| < radius (1/z_e + 1/z_g)`` with ``p = (x/z, y/z)``. Where it is
+    False the toolkit sets VSD to 1 for every tau without rendering.
     """
     t_est, t_gt = np.asarray(t_est, dtype=np.float64), np.asarray(t_gt, dtype=np.float64)
+    if t_est[2] == 0 or t_gt[2] == 0:
+        return False
     dist = np.linalg.norm(t_est[:2] / t_est[2] - t_gt[:2] / t_gt[2])
     return bool(dist < radius * (1.0 / t_est[2] + 1.0 / t_gt[2]))
 
 
 def vsd(
-    dist_est: np.ndarray, dist_gt: np.ndarray, dist_test: np.ndarray, delta: float, taus: np.ndarray
+    dist_est: np.ndarray, dist_gt: np.ndarray, dist_test: np.ndarray, delta: float, taus: np.ndarray,
+    diameter: float | None = None,
 ) -> np.ndarray:
-    """Visible Surface Discrepancy (BOP19, 'step' cost) for each misalignment tolerance.
+    """Visible Surface Discrepancy (BOP19: 'step' cost, ``visib_mode='bop19'``) for each tolerance tau.
+
+    As bop_toolkit ``pose_error.vsd``: visibility of the GT model ``V_g`` = rendered and
+    ``dist_gt - dist_test <= delta`` (float32 difference) or no test measurement (0);
+    visibility of the estimate ``V_e`` = the same test on ``dist_est``, united with
+    ``V_g & (dist_est > 0)``. Over the union ``U = V_g | V_e`` (1 for every tau if empty),
+    ``e = (#{p in V_g & V_e: cost(p) >= tau} + #(U minus V_g & V_e)) / #U`` with
+    ``cost = |dist_gt - dist_est|`` (float64), divided by ``diameter`` when given (the toolkit's
+    ``vsd_normalized_by_diameter``; then ``taus`` are fractions of the diameter).
 
     Args:
         dist_est, dist_gt: [H,W] distance maps (m, 0 = not rendered) of the model at the estimated
-            and the GT pose (see :func:`cosy_lite.geometry.depth.depth_to_distance`).
+            and the GT pose (distance from the camera centre, not depth).
         dist_test: [H,W] distance map of the test depth image (m, 0 = no measurement).
         delta: tolerance of the visibility test (m), e.g. 0.015.
-        taus: [T] misalignment tolerances in m (e.g. 0.05..0.5 x diameter).
+        taus: [T] misalignment tolerances (m, or x diameter when ``diameter`` is given).
+        diameter: object diameter (m) to normalise the costs by, or None.
     Returns:
-        [T] errors in [0, 1]; 1 for every tau if neither pose is visible. A pixel of the
-        intersection of the visibility masks matches when ``|dist_gt - dist_est| < tau``
-        (the toolkit counts ``cost >= tau`` as a miss).
+        [T] errors in [0, 1].
     """
     from cosy_lite.geometry.depth import visibility_mask, visibility_mask_est
 
     if not (dist_est.shape == dist_gt.shape == dist_test.shape) or dist_test.ndim != 2:
-        raise ValueError(f"distance maps must be [H,W] of one shape, got {dist_est.shape}, {dist_gt.shape}, {dist_test.shape}")
+        raise ValueError(f"distance maps must be [H,W] of one shape, got {dist_est.shape}, {dist_gt.shape}, "
+                         f"{dist_test.shape}")
     taus = np.asarray(taus, dtype=np.float64).reshape(-1)
     visib_gt = visibility_mask(dist_test, dist_gt, delta)
     visib_est = visibility_mask_est(dist_test, dist_est, visib_gt, delta)
@@ -150,6 +165,9 @@ def vsd(
     union_count = int(np.count_nonzero(visib_gt | visib_est))
     if union_count == 0:
         return np.ones(len(taus))
-    costs = np.sort(np.abs(dist_gt[inter].astype(np.float64) - dist_est[inter].astype(np.float64)))
+    costs = np.abs(dist_gt[inter].astype(np.float64) - dist_est[inter].astype(np.float64))
+    if diameter is not None:
+        costs /= float(diameter)
+    costs.sort()
     matches = np.searchsorted(costs, taus, side="left")  # number of costs < tau
     return (union_count - matches) / float(union_count)

@@ -1,0 +1,125 @@
+"""Errors of the evaluated estimates of one test image against its GT instances (BOP19 rules).
+
+Per target (object of the image) the caller gives the top ``inst_count`` estimates; each is
+compared with every GT instance of that object, as bop_toolkit ``eval_calc_errors.py``:
+
+* **VSD** only where the projections of the bounding spheres overlap
+  (``misc.overlapping_sphere_projections``, radius = diameter / 2 about the model origin);
+  elsewhere 1 for every tau. Each estimate and GT pose is rendered once (only if one of its
+  pairs needs it), inside its own window; a pair is scored on the union of the two windows,
+  which holds every pixel where either model is rendered, so the result equals a full-image VSD.
+* **MSSD** is +inf where the bounding spheres do not overlap (``||t_e - t_g|| >= diameter``), as
+  the toolkit; **MSPD** is always computed, as the toolkit. **ADD, ADI** are always computed (they
+  only feed the YCB-V AUC, defined by PoseCNN without the toolkit's shortcut).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosy_lite.bop.results import PoseEstimate
+from cosy_lite.eval import pose_errors
+from cosy_lite.eval.depth_renderer import Window, WindowDepthRenderer, object_window
+from cosy_lite.eval.object_errors import ObjectErrors
+from cosy_lite.eval.scoring import VSD_TAUS
+
+
+@dataclass
+class PairErrors:
+    """Errors of E estimates x G GT instances of one object in one image."""
+
+    vsd: np.ndarray  # [E,G,T] per tau of VSD_TAUS
+    mssd: np.ndarray  # [E,G] m
+    mspd: np.ndarray  # [E,G] px
+    add: np.ndarray  # [E,G] m
+    adi: np.ndarray  # [E,G] m
+
+    @staticmethod
+    def missing(E: int, G: int) -> PairErrors:
+        """Nothing computed: VSD 1, the others +inf."""
+        return PairErrors(np.ones((E, G, len(VSD_TAUS))), *(np.full((E, G), np.inf) for _ in range(4)))
+
+
+def distance_map(depth: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
+    """Depth [h,w] of ``window`` (any unit, 0 = none) -> float64 distance from the camera centre.
+
+    The toolkit's ``depth_im_to_dist_im_fast``: ``sqrt((X d)^2 + (Y d)^2 + d^2)`` with
+    ``X = (x - cx) / fx``, ``Y = (y - cy) / fy`` at pixel indices (x, y) of the full image.
+    """
+    h, w = depth.shape
+    xs = (np.arange(window.x0, window.x0 + w) - K[0, 2]) / np.float64(K[0, 0])
+    ys = (np.arange(window.y0, window.y0 + h) - K[1, 2]) / np.float64(K[1, 1])
+    d = depth.astype(np.float64)
+    return np.sqrt((xs[None, :] * d) ** 2 + (ys[:, None] * d) ** 2 + d**2)
+
+
+def _paste(dist: np.ndarray, src: Window, dst: Window) -> np.ndarray:
+    """``dist`` of window ``src`` placed in a zero map of window ``dst`` (which contains ``src``)."""
+    out = np.zeros(dst.shape)
+    if src.empty:
+        return out
+    out[src.y0 - dst.y0:src.y1 - dst.y0, src.x0 - dst.x0:src.x1 - dst.x0] = dist
+    return out
+
+
+class ImageErrors:
+    """Computes :class:`PairErrors` for the targets of one image; renders lazily, each pose once.
+
+    Args:
+        renderer: depth renderer of the image size; depth_m: loads the test depth [H,W] (m) when first needed;
+        K: [3,3]; delta: VSD visibility tolerance (m).
+    """
+
+    def __init__(self, renderer: WindowDepthRenderer, depth_m, K: np.ndarray, delta: float):
+        self.renderer = renderer
+        self._load_depth = depth_m
+        self._depth: np.ndarray | None = None
+        self.K = np.asarray(K, dtype=np.float64)
+        self.delta = float(delta)
+        self._rendered: dict[tuple, tuple[Window, np.ndarray]] = {}
+
+    def _test_depth(self) -> np.ndarray:
+        if self._depth is None:
+            self._depth = self._load_depth()
+        return self._depth
+
+    def _render(self, key: tuple, obj_id: int, obj: ObjectErrors, TCO: np.ndarray) -> tuple[Window, np.ndarray]:
+        """Window and float64 distance map of one pose (cached under ``key``)."""
+        if key not in self._rendered:
+            r = self.renderer
+            win = object_window(obj.hull, TCO, self.K, r.width, r.height)
+            self._rendered[key] = (win, distance_map(r.render(obj_id, TCO, self.K, win), self.K, win))
+        return self._rendered[key]
+
+    def target(self, obj_id: int, obj: ObjectErrors, ests: list[PoseEstimate], gt_TCO: list[np.ndarray],
+               gt_keys: list[int]) -> PairErrors:
+        """Errors of ``ests`` (E, evaluated order) against GT poses ``gt_TCO`` (G; ``gt_keys``: their GT indices)."""
+        E, G = len(ests), len(gt_TCO)
+        out = PairErrors.missing(E, G)
+        if E == 0 or G == 0:
+            return out
+        T_est = np.stack([e.TCO for e in ests])
+        radius = 0.5 * obj.diameter
+        for g, (T_gt, gkey) in enumerate(zip(gt_TCO, gt_keys)):
+            near = np.linalg.norm(T_est[:, :3, 3] - T_gt[:3, 3], axis=1) < obj.diameter  # bounding spheres overlap
+            out.mssd[:, g], out.mspd[:, g] = obj.mssd_mspd(T_est, T_gt, self.K)
+            out.mssd[~near, g] = np.inf
+            out.add[:, g] = obj.add(T_est, T_gt)
+            out.adi[:, g] = obj.adi(T_est, T_gt)
+            for e in range(E):
+                if pose_errors.sphere_projections_overlap(radius, T_est[e, :3, 3], T_gt[:3, 3]):
+                    out.vsd[e, g] = self._vsd(obj_id, obj, ("est", obj_id, e), T_est[e], ("gt", gkey), T_gt)
+        return out
+
+    def _vsd(self, obj_id: int, obj: ObjectErrors, key_e, T_e, key_g, T_g) -> np.ndarray:
+        win_e, dist_e = self._render(key_e, obj_id, obj, T_e)
+        win_g, dist_g = self._render(key_g, obj_id, obj, T_g)
+        win = win_e.union(win_g)
+        if win.empty:  # neither pose is rendered in the image: empty union
+            return np.ones(len(VSD_TAUS))
+        depth = self._test_depth()
+        dist_test = distance_map(depth[win.y0:win.y1, win.x0:win.x1], self.K, win)
+        return pose_errors.vsd(_paste(dist_e, win_e, win), _paste(dist_g, win_g, win), dist_test, self.delta,
+                               VSD_TAUS, diameter=obj.diameter)
