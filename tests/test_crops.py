@@ -35,11 +35,11 @@ def test_box_centred_on_projected_origin_with_crop_aspect_and_margin():
     boxes = crop_boxes(TCO, K, pts, crop_resolution=(240, 320), margin=1.4)
     w, h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
     torch.testing.assert_close(w / h, torch.full((2,), 4 / 3, dtype=torch.float64))
-    # Centre = projected origin (+0.5: continuous pixel coordinates).
-    origin = project_points(TCO, K, torch.zeros(2, 1, 3, dtype=torch.float64))[:, 0] + 0.5
+    # Centre = projected origin.
+    origin = project_points(TCO, K, torch.zeros(2, 1, 3, dtype=torch.float64))[:, 0]
     torch.testing.assert_close((boxes[:, :2] + boxes[:, 2:]) / 2, origin)
     # The binding extent, divided by the margin, touches the farthest projected corner exactly.
-    uv = project_points(TCO, K, pts) + 0.5
+    uv = project_points(TCO, K, pts)
     dx = (uv[..., 0] - origin[:, None, 0]).abs().amax(1)
     dy = (uv[..., 1] - origin[:, None, 1]).abs().amax(1)
     torch.testing.assert_close(w / 2 / 1.4, torch.maximum(dx, dy * 4 / 3))
@@ -47,47 +47,47 @@ def test_box_centred_on_projected_origin_with_crop_aspect_and_margin():
 
 
 def test_box_by_hand():
-    """One point at (0.1, 0.05, 1) with f = 100, c = (50, 40): origin -> (50.5, 40.5), point 10 px right, 5 down."""
+    """One point at (0.1, 0.05, 1) with f = 100, c = (50, 40): origin -> (50, 40), point 10 px right, 5 down."""
     K = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]]])
     TCO = torch.eye(4)[None].clone()
     TCO[0, 2, 3] = 1.0
     box = crop_boxes(TCO, K, torch.tensor([[[0.1, 0.05, 0.0]]]), crop_resolution=(30, 40), margin=2.0)
     # dx = 10, dy = 5, r = 4/3: half_w = max(10, 6.667) * 2 = 20, half_h = 15.
-    torch.testing.assert_close(box, torch.tensor([[30.5, 25.5, 70.5, 55.5]]))
+    torch.testing.assert_close(box, torch.tensor([[30.0, 25.0, 70.0, 55.0]]))
     # An extra box reaching 30 px above the centre widens it: dy = 30 -> half_w = 40 * 2 = 80.
-    box = crop_boxes(TCO, K, torch.tensor([[[0.1, 0.05, 0.0]]]), (30, 40), 2.0, extra_boxes=torch.tensor([[45.0, 10.5, 55.0, 45.0]]))
-    torch.testing.assert_close(box, torch.tensor([[-29.5, -19.5, 130.5, 100.5]]))
+    box = crop_boxes(TCO, K, torch.tensor([[[0.1, 0.05, 0.0]]]), (30, 40), 2.0, extra_boxes=torch.tensor([[45.0, 10.0, 55.0, 45.0]]))
+    torch.testing.assert_close(box, torch.tensor([[-30.0, -20.0, 130.0, 100.0]]))
 
 
 def test_crop_intrinsics_formula():
-    """K_crop = A K, A: u' = (u + 0.5 - x1) / s - 0.5 with s = box width / crop width."""
+    """K_crop = A K, A: u' = (u - x1) / s with s = box width / crop width."""
     K = torch.tensor([[[500.0, 2.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
     boxes = torch.tensor([[100.0, 60.0, 260.0, 180.0]], dtype=torch.float64)  # 160 x 120 -> 320 x 240: s = 0.5
     Kc = crop_intrinsics(K, boxes, (240, 320))[0]
     expected = torch.tensor(
-        [[1000.0, 4.0, (320.5 - 100.0) / 0.5 - 0.5], [0.0, 1200.0, (240.5 - 60.0) / 0.5 - 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64
+        [[1000.0, 4.0, (320.0 - 100.0) / 0.5], [0.0, 1200.0, (240.0 - 60.0) / 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64
     )
     torch.testing.assert_close(Kc, expected)
-    # The box corners map to the crop borders: continuous x1 -> -0.5 (OpenCV), x2 -> w - 0.5.
-    X = torch.tensor([[(99.5 - 320.0) / 500.0, (59.5 - 240.0) / 600.0, 1.0], [(259.5 - 320.0) / 500.0, (179.5 - 240.0) / 600.0, 1.0]], dtype=torch.float64)
+    # The box corners map to the crop corners (0, 0) and (w, h).
+    X = torch.tensor([[(100.0 - 320.0) / 500.0, (60.0 - 240.0) / 600.0, 1.0], [(260.0 - 320.0) / 500.0, (180.0 - 240.0) / 600.0, 1.0]], dtype=torch.float64)
     K0 = K[0].clone()
     K0[0, 1] = 0.0
     Kc0 = crop_intrinsics(K0[None], boxes, (240, 320))[0]
     uv = (X @ Kc0.T)[:, :2] / (X @ Kc0.T)[:, 2:]
-    torch.testing.assert_close(uv, torch.tensor([[-0.5, -0.5], [319.5, 239.5]], dtype=torch.float64))
+    torch.testing.assert_close(uv, torch.tensor([[0.0, 0.0], [320.0, 240.0]], dtype=torch.float64))
 
 
 def _blob_image(centres_uv: torch.Tensor, H: int, W: int, sigma: float) -> torch.Tensor:
-    """[B,1,H,W] Gaussian blobs centred at OpenCV pixel coordinates ``centres_uv`` [B,2]."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    """[B,1,H,W] Gaussian blobs centred at image coordinates ``centres_uv`` [B,2] (pixel i at i + 0.5)."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")
     d2 = (u[None] - centres_uv[:, 0, None, None]) ** 2 + (v[None] - centres_uv[:, 1, None, None]) ** 2
     return torch.exp(-d2 / (2 * sigma**2))[:, None]
 
 
 def _centroid(img: torch.Tensor) -> torch.Tensor:
-    """Intensity-weighted centroid [B,2] (OpenCV coordinates) of [B,1,h,w] images."""
+    """Intensity-weighted centroid [B,2] (image coordinates) of [B,1,h,w] images."""
     B, _, h, w = img.shape
-    v, u = torch.meshgrid(torch.arange(h, dtype=img.dtype), torch.arange(w, dtype=img.dtype), indexing="ij")
+    v, u = torch.meshgrid(torch.arange(h, dtype=img.dtype) + 0.5, torch.arange(w, dtype=img.dtype) + 0.5, indexing="ij")
     m = img[:, 0]
     s = m.sum((1, 2))
     return torch.stack([(m * u).sum((1, 2)) / s, (m * v).sum((1, 2)) / s], dim=-1)
@@ -100,13 +100,13 @@ def test_k_crop_reprojects_points_onto_the_sampled_pixels(scale):
     H, W, B = 240, 320, 3
     K = torch.tensor([[300.0, 0.0, 161.3], [0.0, 310.0, 118.7], [0.0, 0.0, 1.0]], dtype=torch.float64).expand(B, 3, 3)
     X = torch.cat([torch.rand(B, 2, generator=gen, dtype=torch.float64) * 0.2 - 0.1, torch.full((B, 1), 1.0, dtype=torch.float64)], 1)
-    uv = (X @ K[0].T)[:, :2] / X[:, 2:]  # OpenCV pixels of the points
+    uv = (X @ K[0].T)[:, :2] / X[:, 2:]  # image coordinates of the points
     sigma = 4.0 * scale
     images = _blob_image(uv, H, W, sigma)
-    # Boxes (continuous coordinates) around each point, off-centre by a sub-pixel amount, 4:3.
+    # Boxes around each point, off-centre by a non-integer amount, 4:3.
     off = torch.rand(B, 2, generator=gen, dtype=torch.float64) * 20 - 10
     half = torch.tensor([40.0, 30.0], dtype=torch.float64) * scale
-    centre = uv + 0.5 + off
+    centre = uv + off
     boxes = torch.cat([centre - half, centre + half], 1)
     res = (48, 64)
     crops = crop_images(images, boxes, res, sampling_ratio=2)
@@ -115,9 +115,6 @@ def test_k_crop_reprojects_points_onto_the_sampled_pixels(scale):
     uv_crop = uv_crop[:, :2] / uv_crop[:, 2:]
     err = (_centroid(crops) - uv_crop).norm(dim=-1)
     assert float(err.max()) < 0.05, err  # well below the 0.5 px requirement
-    # The crop's peak pixel is the rounded projection.
-    peak = crops[:, 0].flatten(1).argmax(1)
-    assert torch.equal(torch.stack([peak % res[1], peak // res[1]], 1), torch.round(uv_crop).long())
 
 
 def test_origin_lands_at_crop_centre():
@@ -126,7 +123,7 @@ def test_origin_lands_at_crop_centre():
     boxes = crop_boxes(TCO, K_YCBV[None], pts, (240, 320))
     Kc = crop_intrinsics(K_YCBV[None], boxes, (240, 320))
     o = (Kc[0] @ TCO[0, :3, 3])
-    torch.testing.assert_close(o[:2] / o[2], torch.tensor([159.5, 119.5], dtype=torch.float64))  # (w-1)/2, (h-1)/2
+    torch.testing.assert_close(o[:2] / o[2], torch.tensor([160.0, 120.0], dtype=torch.float64))  # w/2, h/2
 
 
 def test_nearest_crop_of_a_mask_and_outside_is_zero():
@@ -139,7 +136,7 @@ def test_nearest_crop_of_a_mask_and_outside_is_zero():
     # A box twice the size, half outside the image on the left: 2x2 blocks, zeros outside.
     box = torch.tensor([[-4.2, -0.3, 7.8, 9.7]])
     crop = crop_images(mask.to(torch.uint8) * 7, box, (5, 6), mode="nearest")[0, 0]
-    # Samples: u = -3.7 + 2j -> pixels -4, -2, 0, 2, 4, 6; v = 0.2 + 2i -> 0, 2, 4, 6, 8.
+    # Samples: u = -3.2 + 2j -> pixels -4, -2, 0, 2, 4, 6; v = 0.7 + 2i -> 0, 2, 4, 6, 8.
     expected = torch.zeros(5, 6, dtype=torch.uint8)
     expected[1:3, 4:6] = 7  # v in {2, 4} (rows 2..4) and u in {4, 6} (cols 3..8)
     assert torch.equal(crop, expected), crop

@@ -126,12 +126,12 @@ def test_initial_depth_within_20_percent_of_projected_boxes():
         z = rng.uniform(0.5, 1.2, n)
         t = np.stack([rng.uniform(-0.15, 0.15, n) * z, rng.uniform(-0.1, 0.1, n) * z, z], 1)
         p = np.einsum("bij,nj->bni", R, pts) + t[:, None]
-        uv = p[..., :2] / p[..., 2:] * K[[0, 1], [0, 1]] + K[:2, 2] + 0.5  # continuous pixels
+        uv = p[..., :2] / p[..., 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
         boxes = torch.tensor(np.concatenate([uv.min(1), uv.max(1)], 1))
         TCO = initial_pose_from_boxes(boxes, torch.tensor(K).expand(n, 3, 3), torch.full((n,), diameter, dtype=torch.float64))
         ratios.append(TCO[:, 2, 3].numpy() / z)
         # x, y back-projected from the box centre at the estimated depth.
-        c = (boxes[:, :2] + boxes[:, 2:]) / 2 - 0.5
+        c = (boxes[:, :2] + boxes[:, 2:]) / 2
         uv_est = TCO[:, :2, 3] / TCO[:, 2:3, 3] * torch.tensor(K[[0, 1], [0, 1]]) + torch.tensor(K[:2, 2])
         torch.testing.assert_close(uv_est, c)
     r = np.concatenate(ratios)
@@ -143,7 +143,7 @@ def test_initial_depth_within_20_percent_of_projected_boxes():
 def test_initial_pose_by_hand():
     """A 100 x 50 px box with f = 500 and an object of extent 0.92 * 0.2 m: z = 500 * 0.184 / 100."""
     K = torch.tensor([[[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]])
-    boxes = torch.tensor([[370.5, 240.5, 470.5, 290.5]])  # centre (420.5, 265.5) continuous = (420, 265) OpenCV
+    boxes = torch.tensor([[370.0, 240.0, 470.0, 290.0]])  # centre (420, 265)
     TCO = initial_pose_from_boxes(boxes, K, torch.tensor([0.2]), rotation="identity")
     z = 500 * EXTENT_PER_DIAMETER * 0.2 / 100
     torch.testing.assert_close(TCO[0, :3, 3], torch.tensor([100 * z / 500, 25 * z / 500, z]))

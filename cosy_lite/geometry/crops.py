@@ -1,22 +1,24 @@
 """Pose-aware crops (CosyPose / DeepIM style) and the intrinsics of a crop (torch, batched).
 
-Pixel conventions. A pinhole projection ``u = fx X/Z + cx`` puts the centre of pixel ``i`` at
-``u = i`` (OpenCV). Boxes ``[x1, y1, x2, y2]`` are in *continuous* pixel coordinates, where pixel
-``i`` covers ``[i, i+1]``: a BOP box ``[x, y, w, h]`` is ``[x, y, x+w, y+h]`` and a projected
-point ``u`` sits at ``u + 0.5``. This is the convention of ``torchvision.ops.roi_align`` with
-``aligned=True``: output pixel ``j`` of a crop of width ``w`` samples the image at
-``u = x1 + (j + 0.5) s - 0.5`` (OpenCV coordinates), ``s = (x2 - x1) / w``. :func:`crop_intrinsics`
-is the exact inverse of that map, so a 3D point projected with ``K_crop`` lands on the crop pixel
-that sampled the image where ``K`` projects it.
+Pixel convention (the project's: :mod:`cosy_lite.render.gl`, the renderers, ``bop/gt_info.py``, the
+BOP toolkit): pixel (row r, column c) is the sample at ``(u, v) = (c + 0.5, r + 0.5)`` of the
+projection ``u = fx X/Z + cx``, so pixel ``i`` covers ``[i, i+1)`` in ``u``. Projections, boxes
+``[x1, y1, x2, y2]`` (a BOP box ``[x, y, w, h]`` is ``[x, y, x+w, y+h]``) and the coordinates of
+``torchvision.ops.roi_align(aligned=True)`` are then the same numbers: output pixel ``j`` of a crop
+of width ``w`` samples the image at ``u = x1 + (j + 0.5) s``, ``s = (x2 - x1) / w``, which is where
+the crop's own pixel ``j`` lies under ``K_crop`` (:func:`crop_intrinsics`, ``u' = (u - x1) / s``).
+So a crop of a rendered image and a render made with ``K_crop`` agree exactly. (Cameras calibrated
+with OpenCV put pixel centres at integer ``u``; with such images the renders, hence the whole
+pipeline, are half a pixel off, a matter for the renderer.)
 
 CosyPose (``lib3d/cropping.py: deepim_boxes``, ``models/pose.py: crop_inputs``) builds the crop
 from the current pose only: the box of the model points projected at the current pose, centred
 on the projected object origin, half-extent ``max(dx, dy * r) * lambda`` (``lambda = 1.4``). Its
 ``obs_boxes`` argument is also that rendered box (the detection/GT box is not used). Differences
 here: the aspect ratio ``r`` is the crop's (CosyPose uses the full image's, the same 4:3 for
-640x480 images); ``roi_align`` is ``aligned=True`` with continuous boxes (CosyPose: ``aligned=False``
-with boxes in OpenCV coordinates and the matching K rewrite; both centre the origin exactly);
-``extra_boxes`` optionally widens the box to contain another box (e.g. a detection).
+640x480 images); ``roi_align`` is ``aligned=True`` with the K rewrite above (CosyPose: ``aligned=False``
+and a K rewrite for pixel centres at integer ``u``); ``extra_boxes`` optionally widens the box to
+contain another box (e.g. a detection).
 """
 
 from __future__ import annotations
@@ -47,8 +49,8 @@ def _check(name: str, x: Tensor, shape: tuple) -> None:
 def project_points(TCO: Tensor, K: Tensor, points: Tensor, z_min: float = Z_MIN) -> Tensor:
     """Project object points ``[B,N,3]`` (m) at poses ``TCO [B,4,4]`` with ``K [B,3,3]``.
 
-    Returns ``[B,N,2]`` OpenCV pixel coordinates (pixel centres at integers). Depths are clamped to
-    ``>= z_min`` so points behind the camera give finite (meaningless) pixels.
+    Returns ``[B,N,2]`` image coordinates ``(u, v)`` (pixel ``i`` covers ``[i, i+1)``). Depths are
+    clamped to ``>= z_min`` so points behind the camera give finite (meaningless) coordinates.
     """
     p = points @ TCO[:, :3, :3].transpose(1, 2) + TCO[:, None, :3, 3]
     p = p @ K.transpose(1, 2)
@@ -64,7 +66,7 @@ def crop_boxes(
     extra_boxes: Tensor | None = None,
     z_min: float = Z_MIN,
 ) -> Tensor:
-    """Crop boxes ``[B,4]`` (x1, y1, x2, y2; continuous pixels) for objects at poses ``TCO``.
+    """Crop boxes ``[B,4]`` (x1, y1, x2, y2; image coordinates) for objects at poses ``TCO``.
 
     Centred on the projected object origin; half-width ``max(dx, r dy) * margin`` and half-height
     ``max(dx / r, dy) * margin``, ``r = w / h`` of ``crop_resolution`` (h, w), where ``dx``, ``dy``
@@ -77,8 +79,8 @@ def crop_boxes(
     _check("points", points, (B, None, 3))
     h, w = crop_resolution
     r = w / h
-    uv = project_points(TCO, K, points, z_min) + 0.5
-    centre = project_points(TCO, K, torch.zeros_like(points[:, :1]), z_min)[:, 0] + 0.5  # [B,2]
+    uv = project_points(TCO, K, points, z_min)
+    centre = project_points(TCO, K, torch.zeros_like(points[:, :1]), z_min)[:, 0]  # [B,2]
     dist = (uv - centre[:, None]).abs().amax(dim=1)  # [B,2]
     if extra_boxes is not None:
         _check("extra_boxes", extra_boxes, (B, 4))
@@ -93,8 +95,8 @@ def crop_boxes(
 def crop_intrinsics(K: Tensor, boxes: Tensor, crop_resolution: Size = CROP_RESOLUTION) -> Tensor:
     """``K_crop [B,3,3]`` of crops ``boxes [B,4]`` resized to ``crop_resolution`` (h, w).
 
-    Crop pixel ``j`` samples image pixel ``u = x1 + (j + 0.5) s - 0.5`` (roi_align, aligned=True),
-    so ``j = (u + 0.5 - x1) / s - 0.5``: ``K_crop = A @ K`` with ``A`` that affine map (skew kept).
+    Crop pixel ``j`` samples the image at ``u = x1 + (j + 0.5) s`` (roi_align, aligned=True) and
+    lies at ``u' = j + 0.5`` in the crop: ``u' = (u - x1) / s``, ``K_crop = A @ K`` (skew kept).
     """
     B = K.shape[0]
     _check("K", K, (B, 3, 3))
@@ -106,20 +108,20 @@ def crop_intrinsics(K: Tensor, boxes: Tensor, crop_resolution: Size = CROP_RESOL
     A = torch.zeros_like(K)
     A[:, 0, 0] = 1.0 / sx
     A[:, 1, 1] = 1.0 / sy
-    A[:, 0, 2] = (0.5 - boxes[:, 0]) / sx - 0.5
-    A[:, 1, 2] = (0.5 - boxes[:, 1]) / sy - 0.5
+    A[:, 0, 2] = -boxes[:, 0] / sx
+    A[:, 1, 2] = -boxes[:, 1] / sy
     A[:, 2, 2] = 1.0
     return A @ K
 
 
 def _sample_grid(boxes: Tensor, crop_resolution: Size) -> tuple[Tensor, Tensor]:
-    """OpenCV pixel coordinates sampled by each crop pixel: ``u [B,w]``, ``v [B,h]``."""
+    """Image coordinates sampled by each crop pixel: ``u [B,w]``, ``v [B,h]``."""
     h, w = crop_resolution
     j = torch.arange(w, dtype=boxes.dtype, device=boxes.device) + 0.5
     i = torch.arange(h, dtype=boxes.dtype, device=boxes.device) + 0.5
     sx = (boxes[:, 2:3] - boxes[:, 0:1]) / w
     sy = (boxes[:, 3:4] - boxes[:, 1:2]) / h
-    return boxes[:, 0:1] + j * sx - 0.5, boxes[:, 1:2] + i * sy - 0.5
+    return boxes[:, 0:1] + j * sx, boxes[:, 1:2] + i * sy
 
 
 def _crop_bilinear(images: Tensor, boxes: Tensor, crop_resolution: Size, sampling_ratio: int) -> Tensor:
@@ -133,7 +135,7 @@ def _crop_bilinear(images: Tensor, boxes: Tensor, crop_resolution: Size, samplin
 def _crop_nearest(images: Tensor, boxes: Tensor, crop_resolution: Size, sampling_ratio: int) -> Tensor:
     B, C, H, W = images.shape
     u, v = _sample_grid(boxes.to(torch.float64), crop_resolution)
-    iu, iv = torch.round(u).long(), torch.round(v).long()  # [B,w], [B,h]
+    iu, iv = torch.floor(u).long(), torch.floor(v).long()  # the pixel [i, i+1) holding the sample
     valid = ((iu >= 0) & (iu < W))[:, None, :] & ((iv >= 0) & (iv < H))[:, :, None]  # [B,h,w]
     b = torch.arange(B, device=images.device)[:, None, None]
     out = images.permute(0, 2, 3, 1)[b, iv.clamp(0, H - 1)[:, :, None], iu.clamp(0, W - 1)[:, None, :]]  # [B,h,w,C]
@@ -154,7 +156,7 @@ def crop_images(
     mode: str = "bilinear",
     sampling_ratio: int = SAMPLING_RATIO,
 ) -> Tensor:
-    """Crop ``images [B,C,H,W]`` to ``boxes [B,4]`` (continuous pixels), resized to ``crop_resolution``.
+    """Crop ``images [B,C,H,W]`` to ``boxes [B,4]`` (image coordinates), resized to ``crop_resolution``.
 
     ``mode``: a key of :data:`CROP_MODES`; ``"bilinear"`` needs floating images, ``"nearest"``
     takes any dtype (bool masks, ids, depth). Outside the image the crop is 0.

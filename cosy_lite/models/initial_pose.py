@@ -18,7 +18,8 @@ setting used a fixed ``z = 1 m``; its BOP 2020 version (``TCO_init_from_boxes_zu
 fitted the model's extent at the canonical rotation, which fails whenever the true rotation differs.
 
 x, y: the box centre back-projected at that depth. Rotation: one of :data:`CANONICAL_ROTATIONS`.
-Boxes are ``[x1, y1, x2, y2]`` in continuous pixels (see :mod:`cosy_lite.geometry.crops`).
+Boxes are ``[x1, y1, x2, y2]`` in image coordinates (pixel ``i`` covers ``[i, i+1)``; see
+:mod:`cosy_lite.geometry.crops`).
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def initial_pose_from_boxes(
     rotation: str = "z_up",
     extent_per_diameter: float | Tensor = EXTENT_PER_DIAMETER,
 ) -> Tensor:
-    """``TCO [B,4,4]`` (m) starting poses for objects seen in ``boxes [B,4]`` (continuous pixels).
+    """``TCO [B,4,4]`` (m) starting poses for objects seen in ``boxes [B,4]`` (image coordinates).
 
     ``K [B,3,3]``; ``diameters [B]`` (m): model diameters; ``rotation``: a key of
     :data:`CANONICAL_ROTATIONS`. Depth ``min(fx s / w, fy s / h)`` with ``s = extent_per_diameter * d``;
@@ -82,7 +83,7 @@ def initial_pose_from_boxes(
     ratio = torch.as_tensor(extent_per_diameter, dtype=K.dtype, device=K.device)
     extent = ratio * diameters.to(K.dtype)
     z = (f * extent[:, None] / size).amin(dim=-1, keepdim=True)  # [B,1]
-    centre = (boxes[:, :2] + boxes[:, 2:]) / 2 - 0.5  # OpenCV pixel coordinates
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
     xy = (centre - c) / f * z
     R = CANONICAL_ROTATIONS[rotation].to(dtype=K.dtype, device=K.device).expand(B, 3, 3)
     return _rigid(R, torch.cat([xy, z], dim=-1))
