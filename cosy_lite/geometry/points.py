@@ -18,7 +18,7 @@ from cosy_lite.bop.io import ModelInfo
 from cosy_lite.geometry.symmetries import symmetry_transforms
 
 N_POINTS = 2000  # CosyPose's n_points_loss
-N_CONTINUOUS = 64  # steps of a continuous symmetry for training (the BOP evaluation uses 315)
+N_CONTINUOUS = 64  # steps of a continuous symmetry for training, as CosyPose (the BOP evaluation uses 315)
 
 
 def sample_model_points(

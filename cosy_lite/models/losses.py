@@ -29,7 +29,8 @@ terms are summed for each candidate, and the candidate with the smallest sum is 
 
 With the candidate's rotation in the xy and depth partial poses, their point distances reduce to
 translation differences: ``(|dx| + |dy|) / 3`` and ``|dz| / 3`` (the mean over 3 coordinates); only
-the rotation term needs the points, ``mean |(R_pred - R_S) x|``.
+the rotation term needs the points, ``mean |(R_pred - R_S) x|``, computed for the real entries of
+the padded sets only (a batch pays for the sum of its set sizes, not B times the largest).
 """
 
 from __future__ import annotations
@@ -99,10 +100,11 @@ def disentangled_loss(
     cand = TCO_gt[:, None] @ symmetries.to(TCO_gt)  # [B,S,4,4] the symmetric GT poses
     R_c, t_c = cand[..., :3, :3], cand[..., :3, 3]
 
-    # Rotation term: (R_pred, t_c) against (R_c, t_c).
+    # Rotation term: (R_pred, t_c) against (R_c, t_c), for the real (unpadded) candidates only.
     R_pred = rotation_update(delta) @ TCO_in[:, :3, :3]
-    diff = torch.einsum("bsij,bnj->bsni", R_pred[:, None] - R_c, points.to(R_c))
-    rot = diff.abs().mean(dim=(-1, -2))  # [B,S]
+    bi, si = sym_mask.nonzero(as_tuple=True)
+    diff = torch.einsum("vij,vnj->vni", R_pred[bi] - R_c[bi, si], points.to(R_c)[bi])
+    rot = torch.full_like(t_c[..., 0], float("inf")).index_put((bi, si), diff.abs().mean(dim=(-1, -2)))  # [B,S]
 
     # xy term: (R_c, [(v / f + xy_in / z_in) z_c, z_c]) against (R_c, t_c).
     f = torch.stack([K_crop[:, 0, 0], K_crop[:, 1, 1]], dim=-1)
@@ -114,7 +116,7 @@ def disentangled_loss(
     z_pred = torch.exp(delta[:, 8:9]) * t_in[:, 2:3]  # [B,1]
     depth = (z_pred - t_c[..., 2]).abs() / 3.0  # [B,S]
 
-    total = (rot + xy + depth).masked_fill(~sym_mask, float("inf"))
+    total = rot + xy + depth  # inf where padded
     k = total.argmin(dim=1)  # [B]
     pick = lambda x: x.gather(1, k[:, None])[:, 0]  # noqa: E731
     rot_k, xy_k, depth_k = pick(rot), pick(xy), pick(depth)
