@@ -11,7 +11,7 @@ from torchvision.ops import FrozenBatchNorm2d, box_iou
 
 from cosy_lite.bop.detections import Detections
 from cosy_lite.models.detector import (
-    DETECTORS, Detector, DetectorConfig, DetectorTarget, LabelMap, detect, detector_losses,
+    DETECTORS, Detector, DetectorConfig, LabelMap, detect, detector_losses,
 )
 
 H, W = 120, 160
@@ -22,18 +22,19 @@ SMALL = dict(fpn_channels=64, min_size=H, max_size=W, rpn_pre_nms_top_n_train=20
              rpn_pre_nms_top_n_test=50, rpn_post_nms_top_n_test=20, box_batch_size_per_image=64)
 
 
-def rectangles_image(seed: int, rects: list[tuple[int, tuple[int, int, int, int]]]) -> tuple[torch.Tensor, DetectorTarget]:
-    """Coloured rectangles (obj_id, x0, y0, x1, y1) on dark noise, with their boxes and masks."""
+def rectangles_image(seed: int, rects: list[tuple[int, tuple[int, int, int, int]]]) -> tuple[torch.Tensor, dict]:
+    """Coloured rectangles (obj_id, x0, y0, x1, y1) on dark noise, with the torchvision target."""
     im = torch.rand(3, H, W, generator=torch.Generator().manual_seed(seed)) * 0.3
     masks = torch.zeros(len(rects), H, W, dtype=torch.bool)
     for k, (obj_id, (x0, y0, x1, y1)) in enumerate(rects):
         masks[k, y0:y1, x0:x1] = True
         im[:, masks[k]] = torch.tensor(COLOURS[obj_id]).view(3, 1)
     boxes = torch.tensor([r for _, r in rects], dtype=torch.float32)
-    return im, DetectorTarget(boxes, torch.tensor([o for o, _ in rects]), masks)
+    labels = LabelMap(OBJ_IDS).labels(torch.tensor([o for o, _ in rects]))
+    return im, {"boxes": boxes, "labels": labels, "masks": masks.to(torch.uint8)}
 
 
-def two_images() -> tuple[list[torch.Tensor], list[DetectorTarget]]:
+def two_images() -> tuple[list[torch.Tensor], list[dict]]:
     a = rectangles_image(0, [(1, (10, 20, 60, 70)), (2, (80, 30, 140, 90)), (5, (40, 80, 100, 115))])
     b = rectangles_image(1, [(5, (5, 5, 50, 40)), (1, (90, 60, 150, 110))])
     return [a[0], b[0]], [a[1], b[1]]
@@ -90,8 +91,9 @@ def test_few_steps_lower_the_loss():
     assert np.isfinite(totals).all()
     assert np.mean(totals[-3:]) < 0.6 * totals[0], totals
     with pytest.raises(ValueError, match="masks"):
-        bad = DetectorTarget(targets[0].boxes, targets[0].obj_ids, targets[0].masks[:, :10])
-        detector_losses(model, images[:1], [bad])
+        detector_losses(model, images[:1], [dict(targets[0], masks=targets[0]["masks"][:, :10])])
+    with pytest.raises(ValueError, match="not obj_ids"):
+        detector_losses(model, images[:1], [dict(targets[0], labels=torch.tensor([1, 2, 5]))])
 
 
 def test_detect_returns_obj_ids_and_image_sized_masks():

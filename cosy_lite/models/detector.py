@@ -9,8 +9,8 @@ FrozenBatchNorm, which without pretrained statistics lets activations blow up (z
 Classes are contiguous labels ``1..n`` (0 is background); :class:`LabelMap` maps them to BOP
 ``obj_id`` and is stored in checkpoints (:meth:`Detector.meta`).
 
-Training: ``losses = detector_losses(model, images, targets)``; ``losses["total"]`` is the sum
-to back-propagate. Inference: ``detect(model, images) -> list[Detections]``. Images are lists of
+Training: ``losses = detector_losses(model, batch.images, batch.targets)`` (a
+:class:`cosy_lite.structures.DetectionBatch`); ``losses["total"]`` is the sum to back-propagate. Inference: ``detect(model, images) -> list[Detections]``. Images are lists of
 ``[3, H, W]`` float tensors in ``[0, 1]`` (sizes may differ); torchvision resizes them so the
 short side is ``min_size`` (capped by ``max_size``) and normalises them inside the model. The
 module exported to ONNX is :attr:`Detector.net` (outputs contiguous labels, not obj_ids).
@@ -185,18 +185,6 @@ def build_maskrcnn(cfg: DetectorConfig, n_classes: int) -> MaskRCNN:
 # ----------------------------------------------------------------------------- the module
 
 
-@dataclass
-class DetectorTarget:
-    """Ground truth of one training image (pixels, xyxy with exclusive right/bottom edges)."""
-
-    boxes: torch.Tensor  # [N,4] float32 x0, y0, x1, y1 [px], x1 > x0 and y1 > y0
-    obj_ids: torch.Tensor  # [N] int64 BOP object ids
-    masks: torch.Tensor  # [N,H,W] bool (visible masks)
-
-    def to(self, device: torch.device | str) -> "DetectorTarget":
-        return DetectorTarget(self.boxes.to(device), self.obj_ids.to(device), self.masks.to(device))
-
-
 class Detector(nn.Module):
     """torchvision Mask R-CNN + the obj_id label map.
 
@@ -222,27 +210,29 @@ class Detector(nn.Module):
     def from_meta(cls, meta: dict[str, Any]) -> "Detector":
         return cls(LabelMap.from_dict(meta["label_map"]), DetectorConfig(**meta["detector_config"]))
 
-    def _tv_targets(self, images: list[torch.Tensor], targets: list[DetectorTarget]) -> list[dict[str, torch.Tensor]]:
+    def _check_targets(self, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]]) -> None:
         if len(targets) != len(images):
             raise ValueError(f"{len(images)} images but {len(targets)} targets")
-        out = []
         for i, (im, t) in enumerate(zip(images, targets)):
-            n = len(t.boxes)
-            if t.boxes.shape != (n, 4) or t.obj_ids.shape != (n,) or t.masks.shape != (n, *im.shape[-2:]):
-                raise ValueError(f"target {i}: boxes {tuple(t.boxes.shape)}, obj_ids {tuple(t.obj_ids.shape)}, "
-                                 f"masks {tuple(t.masks.shape)} do not fit [N,4], [N], [N,{im.shape[-2]},{im.shape[-1]}]")
-            out.append({"boxes": t.boxes.float(), "labels": self.label_map.labels(t.obj_ids),
-                        "masks": t.masks.to(torch.uint8)})
-        return out
+            if not {"boxes", "labels", "masks"} <= set(t):
+                raise ValueError(f"target {i}: needs keys boxes, labels, masks; got {sorted(t)}")
+            n = len(t["boxes"])
+            if t["boxes"].shape != (n, 4) or t["labels"].shape != (n,) or t["masks"].shape != (n, *im.shape[-2:]):
+                raise ValueError(f"target {i}: boxes {tuple(t['boxes'].shape)}, labels {tuple(t['labels'].shape)}, "
+                                 f"masks {tuple(t['masks'].shape)} do not fit [N,4], [N], [N,{im.shape[-2]},{im.shape[-1]}]")
+            if n and (t["labels"].min() < 1 or t["labels"].max() >= self.label_map.n_classes):
+                raise ValueError(f"target {i}: labels {t['labels'].tolist()} outside 1..{self.label_map.n_classes - 1} "
+                                 "(labels are LabelMap.labels(obj_ids), not obj_ids)")
 
-    def forward(self, images: list[torch.Tensor], targets: list[DetectorTarget] | None = None):
+    def forward(self, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]] | None = None):
         for i, im in enumerate(images):
             if im.ndim != 3 or im.shape[0] != 3 or not im.is_floating_point():
                 raise ValueError(f"image {i}: expected float [3,H,W] in [0,1], got {im.dtype} {tuple(im.shape)}")
         if self.training:
             if targets is None:
                 raise ValueError("training mode needs targets")
-            return self.net(images, self._tv_targets(images, targets))
+            self._check_targets(images, targets)
+            return self.net(images, targets)
         return [self._detections(o) for o in self.net(images)]
 
     def _detections(self, out: dict[str, torch.Tensor]) -> Detections:
@@ -258,8 +248,12 @@ def _unwrap(model: nn.Module) -> Detector:
     return inner
 
 
-def detector_losses(model: nn.Module, images: list[torch.Tensor], targets: list[DetectorTarget]) -> dict[str, torch.Tensor]:
+def detector_losses(model: nn.Module, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     """Mask R-CNN training losses; the model must be in training mode (DDP wrapper allowed).
+
+    ``images``: B x ``[3,H,W]`` float in ``[0,1]``. ``targets``: B x torchvision targets as in
+    :class:`cosy_lite.structures.DetectionBatch`: ``boxes [N,4]`` float xyxy px (positive width and
+    height), ``labels [N]`` int64 = ``LabelMap.labels(obj_ids)``, ``masks [N,H,W]`` uint8/bool.
 
     Returns torchvision's terms (``loss_classifier``, ``loss_box_reg``, ``loss_mask``,
     ``loss_objectness``, ``loss_rpn_box_reg``) and ``total``, their sum.
