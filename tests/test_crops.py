@@ -55,7 +55,8 @@ def test_box_by_hand():
     # dx = 10, dy = 5, r = 4/3: half_w = max(10, 6.667) * 2 = 20, half_h = 15.
     torch.testing.assert_close(box, torch.tensor([[30.0, 25.0, 70.0, 55.0]]))
     # An extra box reaching 30 px above the centre widens it: dy = 30 -> half_w = 40 * 2 = 80.
-    box = crop_boxes(TCO, K, torch.tensor([[[0.1, 0.05, 0.0]]]), (30, 40), 2.0, extra_boxes=torch.tensor([[45.0, 10.0, 55.0, 45.0]]))
+    extra = torch.tensor([[45.0, 10.0, 55.0, 45.0]])
+    box = crop_boxes(TCO, K, torch.tensor([[[0.1, 0.05, 0.0]]]), crop_resolution=(30, 40), margin=2.0, extra_boxes=extra)
     torch.testing.assert_close(box, torch.tensor([[-30.0, -20.0, 130.0, 100.0]]))
 
 
@@ -69,7 +70,10 @@ def test_crop_intrinsics_formula():
     )
     torch.testing.assert_close(Kc, expected)
     # The box corners map to the crop corners (0, 0) and (w, h).
-    X = torch.tensor([[(100.0 - 320.0) / 500.0, (60.0 - 240.0) / 600.0, 1.0], [(260.0 - 320.0) / 500.0, (180.0 - 240.0) / 600.0, 1.0]], dtype=torch.float64)
+    X = torch.tensor(
+        [[(100.0 - 320.0) / 500.0, (60.0 - 240.0) / 600.0, 1.0], [(260.0 - 320.0) / 500.0, (180.0 - 240.0) / 600.0, 1.0]],
+        dtype=torch.float64,
+    )
     K0 = K[0].clone()
     K0[0, 1] = 0.0
     Kc0 = crop_intrinsics(K0[None], boxes, (240, 320))[0]
@@ -99,7 +103,8 @@ def test_k_crop_reprojects_points_onto_the_sampled_pixels(scale):
     gen = torch.Generator().manual_seed(3)
     H, W, B = 240, 320, 3
     K = torch.tensor([[300.0, 0.0, 161.3], [0.0, 310.0, 118.7], [0.0, 0.0, 1.0]], dtype=torch.float64).expand(B, 3, 3)
-    X = torch.cat([torch.rand(B, 2, generator=gen, dtype=torch.float64) * 0.2 - 0.1, torch.full((B, 1), 1.0, dtype=torch.float64)], 1)
+    X = torch.ones(B, 3, dtype=torch.float64)  # points at z = 1 m
+    X[:, :2] = torch.rand(B, 2, generator=gen, dtype=torch.float64) * 0.2 - 0.1
     uv = (X @ K[0].T)[:, :2] / X[:, 2:]  # image coordinates of the points
     sigma = 4.0 * scale
     images = _blob_image(uv, H, W, sigma)
@@ -120,7 +125,7 @@ def test_k_crop_reprojects_points_onto_the_sampled_pixels(scale):
 def test_origin_lands_at_crop_centre():
     TCO = _pose(0.1, 0.2, 0.3, (0.05, -0.03, 0.8))[None]
     pts = _box_points()[None]
-    boxes = crop_boxes(TCO, K_YCBV[None], pts, (240, 320))
+    boxes = crop_boxes(TCO, K_YCBV[None], pts, crop_resolution=(240, 320))
     Kc = crop_intrinsics(K_YCBV[None], boxes, (240, 320))
     o = (Kc[0] @ TCO[0, :3, 3])
     torch.testing.assert_close(o[:2] / o[2], torch.tensor([160.0, 120.0], dtype=torch.float64))  # w/2, h/2

@@ -12,7 +12,7 @@ from cosy_lite.bop.io import ModelInfo
 from cosy_lite.geometry.points import object_symmetries, sample_model_points, symmetry_tensor
 from cosy_lite.geometry.rotations import axis_angle_to_matrix, random_rotations
 from cosy_lite.models.losses import closest_symmetric_pose, disentangled_loss
-from cosy_lite.models.pose_update import apply_pose_update, pose_update_targets
+from cosy_lite.models.pose_update import pose_update_targets, rotation_update
 
 F64 = torch.float64
 
@@ -25,7 +25,8 @@ def _poses(n: int, seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     T = torch.eye(4, dtype=F64).repeat(n, 1, 1)
     T[:, :3, :3] = random_rotations(n, g)
-    T[:, :3, 3] = torch.rand(n, 3, generator=g, dtype=F64) * torch.tensor([0.2, 0.2, 0.5], dtype=F64) + torch.tensor([-0.1, -0.1, 0.6], dtype=F64)
+    lo, size = torch.tensor([-0.1, -0.1, 0.6], dtype=F64), torch.tensor([0.2, 0.2, 0.5], dtype=F64)
+    T[:, :3, 3] = lo + torch.rand(n, 3, generator=g, dtype=F64) * size
     return T
 
 
@@ -44,7 +45,8 @@ def _cylinder_points(radius=0.04, height=0.1, n_angles=36) -> torch.Tensor:
 
 
 def _info(discrete=(), continuous=()) -> ModelInfo:
-    return ModelInfo(1, 0.2, np.zeros(3), np.ones(3) * 0.1, np.asarray(discrete, dtype=np.float64).reshape(-1, 4, 4), list(continuous))
+    disc = np.asarray(discrete, dtype=np.float64).reshape(-1, 4, 4)
+    return ModelInfo(1, 0.2, np.zeros(3), np.ones(3) * 0.1, disc, list(continuous))
 
 
 def _flip(axis, angle=math.pi, t=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -83,7 +85,8 @@ def test_zero_at_gt_and_at_every_symmetric_gt():
     # Aiming at GT @ S for a symmetry S of the set (the 10th rotation, flipped) is also exact.
     S = torch.as_tensor(cyl[36 + 10])
     target = TCO_gt[3:] @ S
-    terms = disentangled_loss(TCO_in[3:], K[3:], pose_update_targets(TCO_in[3:], target, K[3:]), TCO_gt[3:], pts[3:], syms[3:], mask[3:])
+    delta = pose_update_targets(TCO_in[3:], target, K[3:])
+    terms = disentangled_loss(TCO_in[3:], K[3:], delta, TCO_gt[3:], pts[3:], syms[3:], mask[3:])
     assert float(terms.per_item.max()) < 1e-12
     assert terms.sym_index.tolist() == [46, 46, 46]
     # float32 too.
@@ -113,7 +116,7 @@ def _literal_cosypose(TCO_in, K, delta, TCO_gt, pts, syms, mask):
     """The terms as CosyPose writes them: partial poses from the unsymmetrised GT, points moved, L1
     per coordinate, minimum over the symmetric GT poses for each term separately."""
     cand = TCO_gt[:, None] @ syms
-    dR = apply_pose_update(torch.eye(4, dtype=F64).expand(len(delta), 4, 4), K, torch.cat([delta[:, :6], torch.zeros_like(delta[:, 6:])], 1))[:, :3, :3]
+    dR = rotation_update(delta)
     f = torch.stack([K[:, 0, 0], K[:, 1, 1]], 1)
     z_gt, t_in = TCO_gt[:, 2:3, 3], TCO_in[:, :3, 3]
     T_rot, T_xy, T_z = TCO_gt.clone(), TCO_gt.clone(), TCO_gt.clone()
@@ -155,7 +158,8 @@ def test_invariant_to_a_declared_symmetry(kind):
         sym, pts = object_symmetries(CYLINDER, n_continuous=36), _cylinder_points()
         S = sym[36 + 7]  # rotation by 70 deg about z, then the flip
     else:  # 180 deg about x through (0, 0, 5 mm): moves the origin to (0, 0, 10 mm)
-        sym, pts, S = np.stack([np.eye(4), _flip([1, 0, 0], t=(0.0, 0.0, 0.01))]), _box_points(), _flip([1, 0, 0], t=(0.0, 0.0, 0.01))
+        S = _flip([1, 0, 0], t=(0.0, 0.0, 0.01))
+        sym, pts = np.stack([np.eye(4), S]), _box_points()
     TCO_in, TCO_gt, syms, mask, P = _batch([sym], pts, B_per_set=8, seed=3)
     delta = _random_delta(8, 2)
     a = disentangled_loss(TCO_in, _K(8), delta, TCO_gt, P, syms, mask)
@@ -199,7 +203,8 @@ def test_increases_monotonically_with_rotation_error():
 
 
 def test_gradients_are_finite_and_reach_every_output():
-    TCO_in, TCO_gt, syms, mask, P = _batch([np.eye(4)[None], object_symmetries(CYLINDER, 8)], _cylinder_points(n_angles=8), B_per_set=2, seed=11)
+    sets = [np.eye(4)[None], object_symmetries(CYLINDER, 8)]
+    TCO_in, TCO_gt, syms, mask, P = _batch(sets, _cylinder_points(n_angles=8), B_per_set=2, seed=11)
     delta = _random_delta(4, 3).requires_grad_()
     disentangled_loss(TCO_in, _K(4), delta, TCO_gt, P, syms, mask).total.backward()
     g = delta.grad

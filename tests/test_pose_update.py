@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cosy_lite.geometry.rotations import random_rotations, rotation_angle_deg
+from cosy_lite.geometry.rotations import IDENTITY_6D, random_rotations, rotation_angle_deg
 from cosy_lite.models.initial_pose import (
     CANONICAL_ROTATIONS,
     EXTENT_PER_DIAMETER,
@@ -24,7 +24,8 @@ def _poses(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     T = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
     T[:, :3, :3] = random_rotations(n, g)
-    T[:, :3, 3] = torch.rand(n, 3, generator=g, dtype=torch.float64) * torch.tensor([0.4, 0.3, 0.7]) + torch.tensor([-0.2, -0.15, 0.5])
+    lo, size = torch.tensor([-0.2, -0.15, 0.5]), torch.tensor([0.4, 0.3, 0.7])
+    T[:, :3, 3] = lo + torch.rand(n, 3, generator=g, dtype=torch.float64) * size
     return T.to(dtype)
 
 
@@ -46,7 +47,8 @@ def test_update_by_hand():
     torch.testing.assert_close(out[0, :3, 3], torch.tensor([0.2, 0.0, 1.0], dtype=torch.float64))
     delta = torch.zeros(1, 9, dtype=torch.float64)
     delta[0, 8] = math.log(2.0)
-    delta[0, :6] = torch.tensor([0.0, 1.0, 0.0, -1.0, 0.0, 0.0], dtype=torch.float64) - torch.tensor([1.0, 0, 0, 0, 1.0, 0], dtype=torch.float64)
+    rz90_6d = torch.tensor([0.0, 1.0, 0.0, -1.0, 0.0, 0.0], dtype=torch.float64)  # columns (0,1,0), (-1,0,0)
+    delta[0, :6] = rz90_6d - torch.tensor(IDENTITY_6D, dtype=torch.float64)
     out = apply_pose_update(TCO, K_CROP, delta)
     torch.testing.assert_close(out[0, :3, 3], torch.tensor([0.2, 0.0, 2.0], dtype=torch.float64))
     Rz90 = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)

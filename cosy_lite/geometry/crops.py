@@ -61,6 +61,7 @@ def crop_boxes(
     TCO: Tensor,
     K: Tensor,
     points: Tensor,
+    *,
     crop_resolution: Size = CROP_RESOLUTION,
     margin: float = MARGIN,
     extra_boxes: Tensor | None = None,
@@ -71,7 +72,8 @@ def crop_boxes(
     Centred on the projected object origin; half-width ``max(dx, r dy) * margin`` and half-height
     ``max(dx / r, dy) * margin``, ``r = w / h`` of ``crop_resolution`` (h, w), where ``dx``, ``dy``
     are the largest horizontal/vertical distances from the centre to a projected model point of
-    ``points [B,N,3]`` (m) or to an edge of ``extra_boxes [B,4]`` if given.
+    ``points [B,N,3]`` (m) or to an edge of ``extra_boxes [B,4]`` if given. The image size plays
+    no part (CosyPose took only its aspect ratio from it); options are keyword-only.
     """
     B = TCO.shape[0]
     _check("TCO", TCO, (B, 4, 4))

@@ -72,7 +72,8 @@ def initial_pose_from_boxes(
     B = boxes.shape[0]
     if boxes.shape != (B, 4) or K.shape != (B, 3, 3) or diameters.shape != (B,):
         raise ValueError(
-            f"boxes [B,4], K [B,3,3] and diameters [B] expected, got {tuple(boxes.shape)}, {tuple(K.shape)}, {tuple(diameters.shape)}"
+            "boxes [B,4], K [B,3,3] and diameters [B] expected, got "
+            f"{tuple(boxes.shape)}, {tuple(K.shape)}, {tuple(diameters.shape)}"
         )
     if rotation not in CANONICAL_ROTATIONS:
         raise ValueError(f"rotation must be one of {sorted(CANONICAL_ROTATIONS)}, got {rotation!r}")

@@ -56,7 +56,9 @@ class LossTerms:
     sym_index: Tensor  # [B] int64: index of the symmetry S whose GT @ S was scored
 
 
-def _check_loss_inputs(TCO_in: Tensor, K_crop: Tensor, delta: Tensor, TCO_gt: Tensor, points: Tensor, symmetries: Tensor, sym_mask: Tensor) -> None:
+def _check_loss_inputs(
+    TCO_in: Tensor, K_crop: Tensor, delta: Tensor, TCO_gt: Tensor, points: Tensor, symmetries: Tensor, sym_mask: Tensor
+) -> None:
     B = TCO_in.shape[0]
     S = symmetries.shape[1] if symmetries.dim() == 4 else -1
     expected = {
