@@ -12,7 +12,7 @@ from cosy_lite.bop.io import ModelInfo
 from cosy_lite.geometry.points import object_symmetries, sample_model_points, symmetry_tensor
 from cosy_lite.geometry.rotations import axis_angle_to_matrix, random_rotations
 from cosy_lite.models.losses import closest_symmetric_pose, disentangled_loss
-from cosy_lite.models.pose_update import pose_update_targets, rotation_update
+from cosy_lite.models.pose_update import apply_pose_update, pose_update_targets, rotation_update
 
 F64 = torch.float64
 
@@ -273,3 +273,51 @@ def test_object_symmetries_and_padding():
     assert torch.equal(padded[0, 1:], torch.eye(4).expand(4, 4, 4))
     with pytest.raises(ValueError, match="symmetry set 1"):
         symmetry_tensor([np.eye(4)[None], np.eye(3)])
+
+
+# ----------------------------------------------------------------------------- precision and devices
+
+
+def _float32_case():
+    sym = object_symmetries(CYLINDER, n_continuous=36)
+    TCO_in, TCO_gt, syms, mask, P = _batch([np.eye(4)[None], sym], _cylinder_points(), B_per_set=2, seed=21)
+    f = lambda x: x.float()  # noqa: E731
+    return f(TCO_in), f(_K(4)), f(_random_delta(4, 6)), f(TCO_gt), f(P), f(syms), mask
+
+
+def test_autocast_does_not_reach_poses_or_loss():
+    """Under bf16 autocast (the trainer's mixed precision) with a bf16 network output, the update
+    and the loss are computed in float32 as without autocast."""
+    TCO_in, K, delta, TCO_gt, P, syms, mask = _float32_case()
+    ref = disentangled_loss(TCO_in, K, delta, TCO_gt, P, syms, mask)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        d16 = delta.bfloat16()
+        out = disentangled_loss(TCO_in, K, d16, TCO_gt, P, syms, mask)
+        T = apply_pose_update(TCO_in, K, d16)
+    assert out.total.dtype == torch.float32 and T.dtype == torch.float32
+    exact = disentangled_loss(TCO_in, K, d16.float(), TCO_gt, P, syms, mask)
+    torch.testing.assert_close(out.per_item, exact.per_item)  # only the bf16 rounding of delta itself
+    torch.testing.assert_close(T, exact.TCO_pred)
+    assert float((out.per_item - ref.per_item).abs().max()) < 1e-3 * float(ref.per_item.max())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_same_numbers_on_cuda():
+    from cosy_lite.geometry.crops import crop_boxes, crop_images, crop_intrinsics
+    from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
+
+    args = _float32_case()
+    cpu = disentangled_loss(*args)
+    gpu = disentangled_loss(*[a.cuda() for a in args])
+    torch.testing.assert_close(gpu.per_item.cpu(), cpu.per_item, rtol=1e-5, atol=1e-7)
+    TCO, K, P = args[0], args[1], args[4]
+    img = torch.rand(4, 3, 60, 80, generator=torch.Generator().manual_seed(0))
+    for dev in ("cpu", "cuda"):
+        boxes = crop_boxes(TCO.to(dev), K.to(dev), P.to(dev), crop_resolution=(24, 32))
+        out = (boxes, crop_intrinsics(K.to(dev), boxes, (24, 32)), crop_images(img.to(dev), boxes, (24, 32)),
+               initial_pose_from_boxes(boxes, K.to(dev), torch.full((4,), 0.1, device=dev)),
+               add_pose_noise(TCO.to(dev), generator=torch.Generator().manual_seed(1)))
+        if dev == "cpu":
+            ref = out
+    for a, b in zip(out, ref):
+        torch.testing.assert_close(a.cpu(), b, rtol=1e-4, atol=1e-4)

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from cosy_lite.models.pose_update import POSE_DIM, apply_pose_update, rotation_update
+from cosy_lite.models.pose_update import POSE_DIM, apply_pose_update, full_precision, rotation_update
 
 
 @dataclass
@@ -78,6 +78,7 @@ def _check_loss_inputs(
         raise ValueError("sym_mask must be bool with at least one True per item (the identity)")
 
 
+@full_precision
 def disentangled_loss(
     TCO_in: Tensor,
     K_crop: Tensor,
@@ -96,9 +97,12 @@ def disentangled_loss(
         symmetries: [B,S,4,4] symmetry sets padded; sym_mask: [B,S] True for real entries
             (:func:`cosy_lite.geometry.points.symmetry_tensor`).
     Returns:
-        :class:`LossTerms` (metres: mean absolute coordinate differences).
+        :class:`LossTerms` (metres: mean absolute coordinate differences), in TCO_in's dtype
+        (``delta`` is cast to it; autocast is off inside).
     """
     _check_loss_inputs(TCO_in, K_crop, delta, TCO_gt, points, symmetries, sym_mask)
+    dtype = TCO_in.dtype
+    delta, K_crop, TCO_gt = delta.to(dtype), K_crop.to(dtype), TCO_gt.to(dtype)
     cand = TCO_gt[:, None] @ symmetries.to(TCO_gt)  # [B,S,4,4] the symmetric GT poses
     R_c, t_c = cand[..., :3, :3], cand[..., :3, 3]
 
