@@ -17,7 +17,7 @@ from torch import Tensor
 from cosy_lite.bop.io import ModelInfo
 from cosy_lite.geometry.symmetries import symmetry_transforms
 
-N_POINTS = 2000  # CosyPose's n_points_loss
+N_POINTS = 2000  # CosyPose: 2000 points for the crop boxes, 2600 for the loss (n_points_loss)
 N_CONTINUOUS = 64  # steps of a continuous symmetry for training, as CosyPose (the BOP evaluation uses 315)
 
 
