@@ -27,16 +27,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def format_table(result) -> str:
-    """AR per metric, overall and per object, as an aligned text table."""
+    """AR per metric, overall and per object, then the dataset's recall at every threshold, as aligned text."""
+    from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_THETAS
+
     s = result.scores
-    head = f"{'object':>8} {'targets':>8} {'ests':>6} {'AR':>7} {'AR_VSD':>7} {'AR_MSSD':>7} {'AR_MSPD':>7} {'AUC_ADD(-S)':>11}"
+    head = (f"{'object':>8} {'targets':>8} {'ests':>6} {'AR':>7} {'AR_VSD':>7} {'AR_MSSD':>7} {'AR_MSPD':>7} "
+            f"{'AUC_ADD(-S)':>11} {'AUC_ADI':>7}")
     lines = [f"{result.dataset} / {result.split}: {result.n_estimates_evaluated} of {result.n_estimates_in_file} "
              f"estimates evaluated, {s.n_targets} targets, {result.seconds:.1f} s", head, "-" * len(head)]
     rows = [(str(o), x) for o, x in s.per_object.items()] + [("all", s)]
     for label, x in rows:
-        n_est = x.n_estimates
-        lines.append(f"{label:>8} {x.n_targets:>8} {n_est:>6} {x.ar:7.4f} {x.ar_vsd:7.4f} {x.ar_mssd:7.4f} "
-                     f"{x.ar_mspd:7.4f} {x.auc_add_s:11.4f}")
+        lines.append(f"{label:>8} {x.n_targets:>8} {x.n_estimates:>6} {x.ar:7.4f} {x.ar_vsd:7.4f} {x.ar_mssd:7.4f} "
+                     f"{x.ar_mspd:7.4f} {x.auc_add_s:11.4f} {x.auc_adi:7.4f}")
+
+    def curve(name: str, thresholds, recalls) -> str:
+        return f"{name:<27}" + " ".join(f"{t:>5.3g}" for t in thresholds) + f"\n{'  recall':<27}" + " ".join(
+            f"{r:5.3f}" for r in recalls)
+
+    lines += ["", "recall of all targets per threshold (AR = mean):",
+              curve("VSD theta (mean over tau)", VSD_THETAS, s.recall_vsd.mean(axis=0)),
+              curve("MSSD [x diameter]", MSSD_THRESHOLDS, s.recall_mssd),
+              curve("MSPD [px]", s.mspd_thresholds_px, s.recall_mspd)]
     return "\n".join(lines)
 
 

@@ -181,7 +181,7 @@ def evaluate(
                                         np.array([e.score for e in ests], dtype=np.float64), gt_valid,
                                         pair.vsd, pair.mssd, pair.mspd, pair.add, pair.adi))
                 n_eval += len(ests)
-            bar.set_postfix(estimates=n_eval)
+            bar.set_postfix(estimates=n_eval, refresh=False)
     finally:
         for r in renderers.values():
             r.close()
