@@ -112,7 +112,7 @@ def shapes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         if kind == 0:
             cv2.rectangle(im, tuple(map(int, p[0])), tuple(map(int, p[1])), c, thick)
         elif kind == 1:
-            axes = tuple(int(v) for v in rng.integers(2, s // 4, size=2))
+            axes = tuple(int(v) for v in rng.integers(2, max(3, s // 4), size=2))
             cv2.ellipse(im, tuple(map(int, p[0])), axes, float(rng.uniform(0, 180)), 0, 360, c, thick)
         elif kind == 2:
             cv2.line(im, tuple(map(int, p[0])), tuple(map(int, p[1])), c, int(rng.integers(1, 10)))
@@ -127,7 +127,7 @@ def shapes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 def stripes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     """Stripes or a checkerboard of two random colours at a random angle and period."""
     a = rng.uniform(0, np.pi)
-    period = rng.uniform(6, max(h, w) / 4)
+    period = rng.uniform(4.0, max(8.0, max(h, w) / 4))
     x = np.arange(w, dtype=np.float32)[None] / period
     y = np.arange(h, dtype=np.float32)[:, None] / period
     u = x * np.cos(a) + y * np.sin(a)
