@@ -270,3 +270,26 @@ def test_match_greedy_equals_the_toolkit_loop_on_random_cases():
         got = match_greedy(errors, valid, th)
         for k, t in enumerate(th):
             assert got[k].tolist() == _match_loop(errors, valid, t)
+
+
+def test_ar_core_is_the_mean_over_core_datasets():
+    from cosy_lite.eval.scoring import ar_core
+
+    ars = {"lmo": 0.6, "tless": 0.5, "tudl": 0.7, "icbin": 0.4, "itodd": 0.3, "hb": 0.8, "ycbv": 0.9, "tiny": 0.0}
+    assert ar_core(ars) == pytest.approx(4.2 / 7)
+    assert ar_core({"a": 0.2, "b": 0.4}, core=("a", "b")) == pytest.approx(0.3)
+    with pytest.raises(KeyError, match="ycbv"):
+        ar_core({k: v for k, v in ars.items() if k != "ycbv"})
+
+
+def test_auc_of_add_s_uses_adi_for_objects_with_symmetries(root: Path):
+    # "tiny" declares no ADD-S objects in the table, so those with symmetries in models_info (obj 2)
+    # are scored with ADI. Obj 2 is a 50 x 50 x 80 mm box (8 vertices): turned 90 deg about z, its
+    # vertex set maps onto itself (ADI 0) while every corner moves 50 mm (ADD 0.05 m, AUC 0.5).
+    ests = _gt_estimates()
+    for e in ests:
+        if e.obj_id == 2:
+            e.TCO[:3, :3] = e.TCO[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    s = _evaluate(root, ests).scores
+    assert s.per_object[2].auc_add_s == pytest.approx(1.0) and s.per_object[2].auc_adi == pytest.approx(1.0)
+    assert s.per_object[1].auc_add_s == pytest.approx(1.0)

@@ -136,12 +136,14 @@ def evaluate(
     params = DATASETS.get(ds.name)
     split = split or (params.test_split if params is not None else "test")
     delta = (params.vsd_delta_mm if params is not None else 15.0) * 1e-3
-    symmetric = params.symmetric_obj_ids if params is not None else ()
     estimates = read_results_csv(results_csv)
     top = _top_estimates(estimates)
     by_image = _targets_by_image(ds.test_targets())
 
     info = ds.models_info
+    # ADD-S objects of the AUC: the table's list (the toolkit's dataset_params), else those with symmetries.
+    symmetric = (params.symmetric_obj_ids if params is not None and params.symmetric_obj_ids
+                 else tuple(o for o, i in info.items() if i.is_symmetric))
     target_objs = sorted({t.obj_id for ts in by_image.values() for t in ts})
     meshes = {o: ds.load_model(o, eval=True) for o in target_objs}
     objs = {

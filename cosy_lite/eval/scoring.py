@@ -234,3 +234,21 @@ def score_targets(
         _recall(tot["mspd"], n_all), mspd_th, auc_threshold_curve(all_err["add_s"]),
         auc_threshold_curve(all_err["adi"]), per_object,
     )
+
+
+def ar_core(ar_by_dataset: dict[str, float], core: tuple[str, ...] | None = None) -> float:
+    """AR_Core of the BOP Challenge: the mean of the per-dataset AR over the core datasets.
+
+    Args:
+        ar_by_dataset: dataset name -> AR (mean of AR_VSD, AR_MSSD, AR_MSPD) of that dataset.
+        core: the datasets to average (default :data:`cosy_lite.bop.params.BOP_CORE`).
+    Raises:
+        KeyError naming the core datasets without a score (the challenge needs all of them).
+    """
+    from cosy_lite.bop.params import BOP_CORE
+
+    core = BOP_CORE if core is None else core
+    missing = [d for d in core if d not in ar_by_dataset]
+    if missing:
+        raise KeyError(f"AR_Core needs an AR for every core dataset; missing: {missing}")
+    return float(np.mean([ar_by_dataset[d] for d in core]))
