@@ -1,0 +1,106 @@
+"""Training data for the pose networks: one item per annotated object INSTANCE of a BOP split.
+
+A plain reader: it returns the full image, the camera, the GT pose and masks. Crops, renderings and
+(usually) the augmentation are done by the training loop on batches, on the device; pass
+``augmentation`` to run it here instead (in DataLoader workers, one image at a time).
+
+The "any object" mask used by background replacement is the union of the ``mask_visib`` files of
+all GT instances of the image (whatever their object id or visibility): pixels showing an annotated
+object. Unannotated things (distractors) count as background, as in CosyPose.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.data.augmentation import StrongAugmentation
+from cosy_lite.data.instances import check_obj_ids, load_masks, load_rgb, scan_split, split_train_val
+from cosy_lite.structures import PoseBatch, PoseSample
+
+__all__ = ["PoseDataset", "split_train_val", "collate_poses"]
+
+
+class PoseDataset(Dataset):
+    """Object instances of ``split`` with ``visib_fract >= min_visib_fract`` and at least ``min_px``
+    visible pixels, restricted to ``obj_ids`` (None: all objects of the dataset).
+
+    Args:
+        dataset: the BOP dataset.
+        split: e.g. ``"train_pbr"``.
+        obj_ids: objects to keep (checked against ``models_info.json``).
+        min_visib_fract: minimum visible fraction (``scene_gt_info.json``).
+        min_px: minimum number of visible pixels (``px_count_visib``).
+        scene_ids: scenes to read (None: all scenes of the split).
+        augmentation: applied to each item's image (uint8 stays uint8) if given.
+
+    The index is built at construction from the scene JSON files only (no image is read).
+    """
+
+    def __init__(self, dataset: BopDataset, split: str = "train_pbr", obj_ids: list[int] | None = None,
+                 min_visib_fract: float = 0.1, min_px: int = 50, scene_ids: list[int] | None = None,
+                 augmentation: StrongAugmentation | None = None):
+        self.dataset = dataset
+        self.split = split
+        self.obj_ids = check_obj_ids(dataset, obj_ids)
+        self.min_visib_fract = min_visib_fract
+        self.min_px = min_px
+        self.augmentation = augmentation
+        self.table = scan_split(dataset, split, scene_ids)
+        self.index = np.nonzero(self.table.select(self.obj_ids, min_visib_fract, min_px))[0]  # rows of the table
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def image_keys(self) -> list[tuple[int, int]]:
+        """(scene_id, im_id) of the images that have at least one item."""
+        rows = np.unique(self.table.image_idx[self.index])
+        return list(zip(self.table.scene_ids[rows].tolist(), self.table.im_ids[rows].tolist()))
+
+    def select_images(self, keys: set[tuple[int, int]]) -> "PoseDataset":
+        """A copy holding only the items of the images ``keys`` (the table is shared)."""
+        t = self.table
+        rows = t.image_idx[self.index]
+        keep = np.array([(int(t.scene_ids[r]), int(t.im_ids[r])) in keys for r in rows], dtype=bool)
+        out = copy.copy(self)
+        out.index = self.index[keep]
+        return out
+
+    def instance_counts(self) -> dict[int, int]:
+        """obj_id -> number of items."""
+        ids, counts = np.unique(self.table.obj_ids[self.index], return_counts=True)
+        return dict(zip(ids.tolist(), counts.tolist()))
+
+    def __getitem__(self, i: int) -> PoseSample:
+        t = self.table
+        n = int(self.index[i])
+        row = int(t.image_idx[n])
+        scene_id, im_id, gt_idx = int(t.scene_ids[row]), int(t.im_ids[row]), int(t.gt_idx[n])
+        rgb = load_rgb(self.dataset, self.split, scene_id, im_id)
+        masks = load_masks(self.dataset, self.split, scene_id, im_id, list(range(int(t.n_gt[row]))), rgb.shape[:2])
+        rgb_t = torch.from_numpy(rgb).permute(2, 0, 1).contiguous()
+        mask_any = torch.from_numpy(masks.any(axis=0))
+        if self.augmentation is not None:
+            rgb_t = self.augmentation(rgb_t[None], mask_any[None])[0]
+        return PoseSample(
+            rgb=rgb_t,
+            K=torch.from_numpy(t.K[row].copy()),
+            TCO=torch.from_numpy(t.TCO[n].copy()),
+            obj_id=int(t.obj_ids[n]),
+            bbox_visib=torch.from_numpy(t.bbox_visib[n].copy()),
+            mask=torch.from_numpy(masks[gt_idx].copy()),
+            mask_any=mask_any,
+            scene_id=scene_id,
+            im_id=im_id,
+            gt_idx=gt_idx,
+            visib_fract=float(t.visib_fract[n]),
+        )
+
+
+def collate_poses(samples: list[PoseSample]) -> PoseBatch:
+    """DataLoader ``collate_fn``: stack into a :class:`PoseBatch`."""
+    return PoseBatch.collate(samples)
