@@ -1,0 +1,1 @@
+"""Inference: detector -> coarse -> refiner -> optional depth ICP (``icp.py``) -> BOP estimates."""

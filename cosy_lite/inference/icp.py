@@ -1,0 +1,343 @@
+"""Depth ICP: refine object poses against a measured depth image (Open3D point-to-plane ICP).
+
+Per object (all objects of an image share one batched render call):
+
+1. window: the projected box of the model's 8 bounding-box corners at the current pose, united
+   with the box of the object's mask, widened by ``cfg.window_margin`` px, clipped to the image;
+2. source: the model's depth rendered at the current pose in that window only (``K_crop`` = ``K``
+   with ``cx -= x0, cy -= y0``, 1:1 scale), back-projected to camera-frame points: the visible
+   model surface, which moves with the pose. Rendered pixels hidden by something else (outside the
+   mask, measured depth in front by more than ``cfg.occlusion_margin``) are dropped;
+3. target: the measured depth inside the mask (and the window), back-projected; normals estimated
+   with a hybrid k-d tree search;
+4. both voxel-downsampled (pixels first taken every :func:`pixel_stride` px, about 2 per voxel
+   side at the object's depth, so near objects cost no more than far ones); optionally the source
+   is first moved along the object's viewing ray by the median depth difference (robust depth
+   pre-alignment); then point-to-plane ICP with a robust kernel over a coarse -> fine schedule
+   of correspondence distances;
+5. the camera-frame update ``T`` (source -> target) gives ``TCO_new = T @ TCO``; the result is
+   rejected (input pose returned, ``accepted=False`` and a reason) when either cloud is too small,
+   the update is not finite, rotates or moves the object more than the limits, or the final
+   fitness / inlier RMSE fail their limits.
+
+Units: metres, depth 0 (or non-finite) = no measurement. Pixel convention as the renderer: pixel
+(row r, column c) is the ray through ``(u, v) = (c + 0.5, r + 0.5)``. Nothing outside the windows
+is touched per object (only the mask's bounding box is found with two ``any`` reductions).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import open3d as o3d
+    import trimesh
+
+    from cosy_lite.render.renderer import RenderOutput
+
+
+class MeshRenderer(Protocol):
+    """What ICP needs from a renderer (:class:`cosy_lite.render.renderer.PyrenderRenderer` has it)."""
+
+    def render(self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: tuple[int, int],
+               depth_only: bool = False) -> RenderOutput: ...
+
+    def mesh(self, obj_id: int) -> trimesh.Trimesh: ...
+
+
+@dataclass
+class IcpConfig:
+    """Depth ICP settings (metres, degrees); defaults for YCB-V-sized objects 0.5-1.5 m away."""
+
+    max_correspondence_distances: list[float] = field(default_factory=lambda: [0.02, 0.01, 0.005])  # m, per stage
+    iterations: list[int] = field(default_factory=lambda: [10, 10, 10])  # ICP iterations per stage
+    robust_kernel: str = "tukey"  # key of ROBUST_KERNELS
+    robust_k: float | None = None  # kernel scale (m); None: each stage's correspondence distance
+    voxel_size: float = 0.004  # m, voxel grid of both clouds
+    normal_radius: float = 0.012  # m, target normals: hybrid search radius ...
+    normal_max_nn: int = 30  # ... and most neighbours
+    min_points: int = 50  # fewest points in either downsampled cloud
+    window_margin: int = 16  # px around the projected model box and the mask box
+    occlusion_margin: float = 0.02  # m, rendered pixel outside the mask, measured this much in front: hidden
+    depth_prealign: bool = True  # move along the object's ray by the median depth difference before ICP
+    max_rotation_deg: float = 15.0  # reject updates rotating the object more
+    max_translation: float = 0.05  # m, reject updates moving the object origin more
+    min_fitness: float = 0.5  # least fraction of model points with a measured one within the last distance
+    max_inlier_rmse: float = 0.004  # m, largest RMSE of those correspondences
+
+    def __post_init__(self) -> None:
+        if len(self.max_correspondence_distances) != len(self.iterations) or not self.iterations:
+            raise ValueError(
+                f"IcpConfig: max_correspondence_distances {list(self.max_correspondence_distances)} and iterations "
+                f"{list(self.iterations)} must be non-empty and of the same length (one entry per stage)"
+            )
+        if self.robust_kernel not in ROBUST_KERNELS:
+            raise ValueError(f"IcpConfig.robust_kernel: unknown {self.robust_kernel!r}; known: {sorted(ROBUST_KERNELS)}")
+        if min(self.max_correspondence_distances) <= 0 or self.voxel_size <= 0 or self.normal_radius <= 0:
+            raise ValueError("IcpConfig: distances, voxel_size and normal_radius must be > 0")
+
+
+@dataclass
+class IcpResult:
+    """Outcome of one object's ICP.
+
+    TCO: [4,4] refined pose (m), or the input pose when not accepted; reason: why rejected ("" if
+    accepted); fitness: fraction of model points with a measured point within the last stage's
+    distance; inlier_rmse (m) of those; n_points / n_model_points: measured / model points after
+    downsampling; delta_rotation_deg, delta_translation (m): the update ICP proposed (NaN if none);
+    seconds: this object's cost (its share of the batched render + its own clouds, normals, ICP),
+    broken down in ``timings`` (render, clouds, normals, icp).
+    """
+
+    TCO: np.ndarray
+    accepted: bool
+    reason: str = ""
+    fitness: float = 0.0
+    inlier_rmse: float = float("nan")
+    n_points: int = 0
+    n_model_points: int = 0
+    delta_rotation_deg: float = float("nan")
+    delta_translation: float = float("nan")
+    seconds: float = 0.0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+# name -> robust kernel class of open3d.pipelines.registration, each with a scale k (m)
+ROBUST_KERNELS = {"tukey": "TukeyLoss", "huber": "HuberLoss", "cauchy": "CauchyLoss"}
+
+
+def robust_kernel(name: str, k: float) -> Any:
+    """The Open3D robust kernel ``name`` (a key of ROBUST_KERNELS) with scale ``k`` (m)."""
+    import open3d as o3d
+
+    return getattr(o3d.pipelines.registration, ROBUST_KERNELS[name])(k=k)
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+
+
+def backproject(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points [N,3] (m) of pixels (rows, cols) [N] with depth z [N] (m), image intrinsics K [3,3]."""
+    yn = (rows + 0.5 - K[1, 2]) / K[1, 1]
+    xn = (cols + 0.5 - K[0, 2] - K[0, 1] * yn) / K[0, 0]
+    z = z.astype(np.float64)
+    return np.stack([xn * z, yn * z, z], axis=1)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle (deg) of a rotation matrix [3,3]."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def pixel_stride(voxel_size: float, K: np.ndarray, z: float) -> int:
+    """Pixel step keeping at least ~2 samples per voxel side at depth z (m): max(1, voxel fx / (2 z))."""
+    return max(1, int(voxel_size * min(K[0, 0], K[1, 1]) / (2.0 * max(z, 1e-6))))
+
+
+def _box_corners(mesh: trimesh.Trimesh) -> np.ndarray:
+    lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def _window(TCO: np.ndarray, K: np.ndarray, corners: np.ndarray, mask_box: tuple[int, int, int, int] | None,
+            size: tuple[int, int], margin: int) -> tuple[int, int, int, int] | None:
+    """(x0, y0, x1, y1) px, half-open, in the image: projected model box U mask box, widened; None if empty."""
+    H, W = size
+    p = corners @ TCO[:3, :3].T + TCO[:3, 3]
+    if (p[:, 2] <= 1e-3).any():  # the box reaches behind the camera: its projection is unbounded
+        box = [0.0, 0.0, float(W), float(H)]
+    else:
+        uv = p @ K.T
+        uv = uv[:, :2] / uv[:, 2:3]
+        box = [uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()]
+    if mask_box is not None:
+        box = [min(box[0], mask_box[0]), min(box[1], mask_box[1]), max(box[2], mask_box[2]), max(box[3], mask_box[3])]
+    x0 = int(np.clip(np.floor(box[0]) - margin, 0, W))
+    y0 = int(np.clip(np.floor(box[1]) - margin, 0, H))
+    x1 = int(np.clip(np.ceil(box[2]) + margin, 0, W))
+    y1 = int(np.clip(np.ceil(box[3]) + margin, 0, H))
+    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
+
+
+def _mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Half-open (x0, y0, x1, y1) of a boolean mask, None if empty."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
+def _cloud(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCloud:
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    return pcd.voxel_down_sample(voxel_size)
+
+
+# ----------------------------------------------------------------------------- checks
+
+
+def _check_inputs(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, masks: np.ndarray, obj_ids: Sequence[int]) -> None:
+    N = len(obj_ids)
+    if TCO.shape != (N, 4, 4):
+        raise ValueError(f"TCO must be [N,4,4] with N = len(obj_ids) = {N}, got shape {TCO.shape}")
+    bad = np.flatnonzero(~np.isfinite(TCO).all(axis=(1, 2)))
+    if len(bad):
+        raise ValueError(f"TCO is not finite (NaN/inf) at index {bad.tolist()}")
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"K must be a finite [3,3] with fx, fy > 0, got shape {K.shape}")
+    if depth.ndim != 2:
+        raise ValueError(f"depth_measured must be [H,W] (m), got shape {depth.shape}")
+    if masks.shape != (N, *depth.shape):
+        raise ValueError(f"masks must be [N,H,W] = {(N, *depth.shape)} (one per object, as depth_measured), got {masks.shape}")
+
+
+# ----------------------------------------------------------------------------- ICP
+
+
+def refine_poses_icp(
+    TCO: np.ndarray, K: np.ndarray, depth_measured: np.ndarray, masks: np.ndarray,
+    renderer: MeshRenderer, obj_ids: Sequence[int], cfg: IcpConfig | None = None,
+) -> list[IcpResult]:
+    """Refine the N object poses of one image against its measured depth.
+
+    Args:
+        TCO: [N,4,4] object-to-camera poses (m); K: [3,3] image intrinsics;
+        depth_measured: [H,W] camera z (m), 0 or non-finite = unknown;
+        masks: [N,H,W] bool, each object's (visible / detection) mask in the full image;
+        renderer: renders the models (``render(..., depth_only=True)`` and ``mesh(obj_id)``);
+        obj_ids: [N]; cfg: :class:`IcpConfig` (defaults if None).
+    Returns: one :class:`IcpResult` per object, in order. All windows are rendered in one call.
+    Raises ValueError for wrong shapes or a non-finite TCO / K (naming the argument and index).
+    """
+    cfg = IcpConfig() if cfg is None else cfg
+    TCO = np.asarray(TCO, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    depth = np.asarray(depth_measured)
+    masks = np.asarray(masks).astype(bool, copy=False)
+    obj_ids = [int(i) for i in obj_ids]
+    _check_inputs(TCO, K, depth, masks, obj_ids)
+    N = len(obj_ids)
+    H, W = depth.shape
+    t_start = time.perf_counter()
+    results: list[IcpResult | None] = [None] * N
+    windows: list[tuple[int, int, int, int] | None] = [None] * N
+    for i in range(N):
+        mask_box = _mask_box(masks[i])
+        if mask_box is None:
+            results[i] = IcpResult(TCO[i].copy(), False, "empty mask")
+        elif TCO[i, 2, 3] <= 0:
+            results[i] = IcpResult(TCO[i].copy(), False, "object origin not in front of the camera (TCO z <= 0)")
+        else:
+            windows[i] = _window(TCO[i], K, _box_corners(renderer.mesh(obj_ids[i])), mask_box, (H, W), cfg.window_margin)
+    todo = [i for i in range(N) if windows[i] is not None]
+    render_share = 0.0
+    rendered = None
+    if todo:
+        h = max(windows[i][3] - windows[i][1] for i in todo)
+        w = max(windows[i][2] - windows[i][0] for i in todo)
+        K_crops = np.repeat(K[None], len(todo), axis=0)
+        K_crops[:, 0, 2] -= [windows[i][0] for i in todo]
+        K_crops[:, 1, 2] -= [windows[i][1] for i in todo]
+        rendered = renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
+        render_share = (time.perf_counter() - t_start) / len(todo)
+    for j, i in enumerate(todo):
+        results[i] = _refine_one(TCO[i], K, depth, masks[i], rendered[j], windows[i], cfg)
+        results[i].timings["render"] = render_share
+        results[i].seconds = sum(results[i].timings.values())
+    return results  # type: ignore[return-value]
+
+
+def refine_pose_icp(
+    TCO: np.ndarray, K: np.ndarray, depth_measured: np.ndarray, mask: np.ndarray,
+    renderer: MeshRenderer, obj_id: int, cfg: IcpConfig | None = None,
+) -> IcpResult:
+    """Refine one pose: TCO [4,4] (m), K [3,3], depth_measured [H,W] (m, 0 = unknown), mask [H,W] bool.
+
+    See :func:`refine_poses_icp`; returns the refined pose, or the input pose with the reason.
+    """
+    return refine_poses_icp(np.asarray(TCO)[None], K, depth_measured, np.asarray(mask)[None], renderer, [obj_id], cfg)[0]
+
+
+def _refine_one(
+    TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, mask: np.ndarray, rendered: np.ndarray,
+    window: tuple[int, int, int, int], cfg: IcpConfig,
+) -> IcpResult:
+    """ICP of one object whose model depth ``rendered`` [h', w'] (>= window) starts at the window's corner."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    x0, y0, x1, y1 = window
+    s = pixel_stride(cfg.voxel_size, K, TCO[2, 3])
+    d_model = rendered[: y1 - y0 : s, : x1 - x0 : s]
+    d_meas = depth[y0:y1:s, x0:x1:s]
+    meas_ok = (d_meas > 0) & (d_meas < np.inf)
+    m = mask[y0:y1:s, x0:x1:s]
+    model_ok = d_model > 0
+    hidden = model_ok & ~m & meas_ok & (d_meas < d_model - cfg.occlusion_margin)
+    src_px = model_ok & ~hidden
+    tgt_px = m & meas_ok
+
+    def reject(reason: str, **kw: Any) -> IcpResult:
+        timings.setdefault("clouds", time.perf_counter() - t0)
+        return IcpResult(TCO.copy(), False, reason, timings=timings, **kw)
+
+    n_tgt, n_src = int(tgt_px.sum()), int(src_px.sum())
+    if n_tgt < cfg.min_points:
+        return reject(f"too few measured depth points in the mask ({n_tgt} < {cfg.min_points})", n_points=n_tgt)
+    if n_src < cfg.min_points:
+        return reject(f"too few rendered model points in the window ({n_src} < {cfg.min_points})", n_model_points=n_src)
+    T_init = np.eye(4)
+    if cfg.depth_prealign:
+        both = model_ok & tgt_px
+        if both.sum() >= cfg.min_points:
+            dz = float(np.median(d_meas[both] - d_model[both]))
+            T_init[:3, 3] = TCO[:3, 3] * dz / TCO[2, 3]  # along the ray through the object origin
+    rows, cols = np.nonzero(tgt_px)
+    target = _cloud(backproject(s * rows + y0, s * cols + x0, d_meas[rows, cols], K), cfg.voxel_size)
+    rows, cols = np.nonzero(src_px)
+    source = _cloud(backproject(s * rows + y0, s * cols + x0, d_model[rows, cols], K), cfg.voxel_size)
+    n_tgt, n_src = len(target.points), len(source.points)
+    timings["clouds"] = time.perf_counter() - t0
+    if min(n_tgt, n_src) < cfg.min_points:
+        return reject(f"too few points after downsampling (measured {n_tgt}, model {n_src}; need {cfg.min_points})",
+                      n_points=n_tgt, n_model_points=n_src)
+    target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius, max_nn=cfg.normal_max_nn))
+    target.orient_normals_towards_camera_location(np.zeros(3))
+    timings["normals"] = time.perf_counter() - t0 - timings["clouds"]
+    T = T_init
+    result = None
+    for dist, iters in zip(cfg.max_correspondence_distances, cfg.iterations):
+        kernel = robust_kernel(cfg.robust_kernel, dist if cfg.robust_k is None else cfg.robust_k)
+        result = reg.registration_icp(
+            source, target, dist, T, reg.TransformationEstimationPointToPlane(kernel),
+            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(iters)),
+        )
+        T = np.asarray(result.transformation)
+    timings["icp"] = time.perf_counter() - t0 - timings["clouds"] - timings["normals"]
+    stats = dict(n_points=n_tgt, n_model_points=n_src, fitness=float(result.fitness),
+                 inlier_rmse=float(result.inlier_rmse), timings=timings)
+    if not np.isfinite(T).all():
+        return IcpResult(TCO.copy(), False, "ICP update is not finite", **stats)
+    TCO_new = T @ TCO
+    d_rot = rotation_angle_deg(T[:3, :3])
+    d_trans = float(np.linalg.norm(TCO_new[:3, 3] - TCO[:3, 3]))
+    stats.update(delta_rotation_deg=d_rot, delta_translation=d_trans)
+    checks = [
+        (d_rot > cfg.max_rotation_deg, f"update rotates {d_rot:.1f} deg > max_rotation_deg {cfg.max_rotation_deg}"),
+        (d_trans > cfg.max_translation,
+         f"update moves {d_trans * 1000:.1f} mm > max_translation {cfg.max_translation * 1000:.0f} mm"),
+        (result.fitness < cfg.min_fitness, f"fitness {result.fitness:.3f} < min_fitness {cfg.min_fitness}"),
+        (result.inlier_rmse > cfg.max_inlier_rmse,
+         f"inlier RMSE {result.inlier_rmse * 1000:.2f} mm > max_inlier_rmse {cfg.max_inlier_rmse * 1000:.1f} mm"),
+    ]
+    for failed, reason in checks:
+        if failed:
+            return IcpResult(TCO.copy(), False, reason, **stats)
+    return IcpResult(TCO_new, True, "", **stats)

@@ -1,0 +1,195 @@
+"""Depth ICP on synthetic depth images made with the real renderer: recovery of known offsets
+(1 cm / 5 deg, a 3 cm depth error, occlusion, two objects in one call) and every rejection rule."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from cosy_lite.inference.icp import IcpConfig, IcpResult, refine_pose_icp, refine_poses_icp, rotation_angle_deg
+from cosy_lite.render.renderer import PyrenderRenderer
+
+MUSTARD, DRILL, PLANE, OCCLUDER = 5, 15, 90, 91  # YCB-V mustard bottle and power drill: no symmetry
+K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])  # YCB-V camera
+SIZE = (480, 640)
+NOISE = 0.001  # m, Gaussian depth noise
+
+
+def _T(R: np.ndarray, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _rodrigues(v) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(v, dtype=np.float64))[0]
+
+
+GT = {
+    MUSTARD: _T(_rodrigues([0.6, -0.9, 0.4]), [0.06, -0.03, 0.80]),
+    DRILL: _T(_rodrigues([-1.2, 0.3, 0.5]), [-0.12, 0.05, 0.90]),
+}
+T_PLANE = _T(np.eye(3), [0.0, 0.0, 1.00])  # a wall behind both objects: the mask decides what is the object
+T_OCCLUDER = _T(np.eye(3), [0.06, 0.03, 0.65])  # a box in front of the lower part of the mustard bottle
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    from cosy_lite.synth.objects import load_ycb_mesh
+
+    meshes = {
+        MUSTARD: load_ycb_mesh(MUSTARD), DRILL: load_ycb_mesh(DRILL),
+        PLANE: trimesh.creation.box(extents=(3.0, 3.0, 0.01)), OCCLUDER: trimesh.creation.box(extents=(0.2, 0.05, 0.05)),
+    }
+    with PyrenderRenderer(meshes=meshes) as r:
+        yield r
+
+
+def _scene(renderer, obj_ids, occluder: bool = False, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Measured depth [H,W] (m, + noise) of the objects at GT in front of the wall, and their visible masks [N,H,W]."""
+    ids = [*obj_ids, PLANE] + ([OCCLUDER] if occluder else [])
+    poses = [GT[i] for i in obj_ids] + [T_PLANE] + ([T_OCCLUDER] if occluder else [])
+    d = renderer.render(ids, np.stack(poses), K, SIZE, depth_only=True).depth
+    d = np.where(d > 0, d, np.inf)
+    nearest = d.argmin(axis=0)
+    depth = d.min(axis=0)
+    depth[~np.isfinite(depth)] = 0.0
+    depth += np.random.default_rng(seed).normal(0.0, NOISE, depth.shape) * (depth > 0)
+    masks = np.stack([(nearest == k) & np.isfinite(d[k]) for k in range(len(obj_ids))])
+    return depth.astype(np.float32), masks
+
+
+def _perturbed(TCO: np.ndarray, deg: float, metres: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    axis, direction = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+    out = TCO.copy()
+    out[:3, :3] = _rodrigues(np.radians(deg) * axis) @ TCO[:3, :3]
+    out[:3, 3] += metres * direction
+    return out
+
+
+def _errors(TCO: np.ndarray, TCO_gt: np.ndarray) -> tuple[float, float]:
+    """(translation error mm, rotation error deg)."""
+    return float(np.linalg.norm(TCO[:3, 3] - TCO_gt[:3, 3]) * 1000), rotation_angle_deg(TCO[:3, :3] @ TCO_gt[:3, :3].T)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_recovers_1cm_5deg(renderer, seed):
+    depth, masks = _scene(renderer, [MUSTARD])
+    start = _perturbed(GT[MUSTARD], 5.0, 0.01, seed)
+    assert _errors(start, GT[MUSTARD]) == pytest.approx((10.0, 5.0), abs=1e-6)
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    e_t, e_r = _errors(res.TCO, GT[MUSTARD])
+    print(f"seed {seed}: {e_t:.3f} mm, {e_r:.3f} deg, fitness {res.fitness:.3f}, rmse {res.inlier_rmse * 1000:.2f} mm, "
+          f"{res.n_points}/{res.n_model_points} points, {res.seconds * 1000:.1f} ms {res.timings}")
+    assert res.accepted and res.reason == ""
+    assert e_t < 2.0 and e_r < 1.0  # measured: ~0.05 mm, ~0.1 deg
+    assert res.fitness > 0.95 and res.inlier_rmse < 2 * NOISE
+    assert res.delta_translation == pytest.approx(0.01, abs=0.002) and res.delta_rotation_deg == pytest.approx(5.0, abs=1.0)
+    assert res.n_points >= 500 and res.n_model_points >= 500
+    assert set(res.timings) == {"render", "clouds", "normals", "icp"} and res.seconds == pytest.approx(sum(res.timings.values()))
+
+
+def test_recovers_3cm_depth_error_and_occlusion(renderer):
+    """An RGB estimate typically errs in depth: 3 cm along the viewing ray + 3 deg, lower part occluded."""
+    depth, masks = _scene(renderer, [MUSTARD], occluder=True)
+    full = renderer.render([MUSTARD], GT[MUSTARD][None], K, SIZE, depth_only=True).mask[0]
+    assert 0.5 < masks[0].sum() / full.sum() < 0.9  # the occluder hides part of the bottle
+    start = _perturbed(GT[MUSTARD], 3.0, 0.0, seed=4)
+    start[:3, 3] *= 1.0 + 0.03 / start[2, 3]
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    e_t, e_r = _errors(res.TCO, GT[MUSTARD])
+    print(f"3 cm depth + occlusion: {e_t:.3f} mm, {e_r:.3f} deg, fitness {res.fitness:.3f}")
+    assert res.accepted and e_t < 2.0 and e_r < 1.0
+    no_prealign = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD, IcpConfig(depth_prealign=False))
+    assert not no_prealign.accepted or _errors(no_prealign.TCO, GT[MUSTARD])[0] > e_t  # pre-alignment helps
+
+
+def test_two_objects_one_render_call(renderer):
+    depth, masks = _scene(renderer, [MUSTARD, DRILL])
+    calls = []
+
+    class Counting:
+        def render(self, *args, **kwargs):
+            calls.append(args[3])
+            return renderer.render(*args, **kwargs)
+
+        def mesh(self, obj_id):
+            return renderer.mesh(obj_id)
+
+    starts = np.stack([_perturbed(GT[MUSTARD], 5.0, 0.01, 5), _perturbed(GT[DRILL], 5.0, 0.01, 6)])
+    results = refine_poses_icp(starts, K, depth, masks, Counting(), [MUSTARD, DRILL])
+    assert len(calls) == 1 and calls[0][0] < SIZE[0] and calls[0][1] < SIZE[1]  # one call, windows smaller than the image
+    for res, obj_id in zip(results, [MUSTARD, DRILL]):
+        e_t, e_r = _errors(res.TCO, GT[obj_id])
+        print(f"obj {obj_id}: {e_t:.3f} mm, {e_r:.3f} deg, {res.seconds * 1000:.1f} ms")
+        assert res.accepted and e_t < 2.0 and e_r < 1.0 and res.seconds > 0
+
+
+def test_rejects_without_data(renderer):
+    depth, masks = _scene(renderer, [MUSTARD])
+    start = _perturbed(GT[MUSTARD], 5.0, 0.01, 1)
+    empty = refine_pose_icp(start, K, depth, np.zeros(SIZE, bool), renderer, MUSTARD)
+    assert not empty.accepted and empty.reason == "empty mask" and np.array_equal(empty.TCO, start)
+    no_depth = refine_pose_icp(start, K, np.zeros(SIZE, np.float32), masks[0], renderer, MUSTARD)
+    assert not no_depth.accepted and no_depth.reason.startswith("too few measured depth points in the mask (0 < 50)")
+    nan_depth = refine_pose_icp(start, K, np.full(SIZE, np.nan, np.float32), masks[0], renderer, MUSTARD)
+    assert not nan_depth.accepted and "too few measured" in nan_depth.reason
+    behind = start.copy()
+    behind[2, 3] = -0.5
+    res = refine_pose_icp(behind, K, depth, masks[0], renderer, MUSTARD)
+    assert not res.accepted and "in front of the camera" in res.reason
+
+
+@pytest.mark.parametrize(
+    "offset, reason",
+    [((0.2, 0.0, 0.0), "fitness"), ((0.0, 0.0, 0.2), "max_translation"), ((0.0, 0.05, 0.0), "")],
+)
+def test_far_start_never_accepts_a_wild_pose(renderer, offset, reason):
+    """20 cm to the side: no correspondences; 20 cm deeper: the depth pre-alignment would move it
+    back, beyond max_translation. 5 cm (beyond the 2 cm capture range): rejected or refined, never wild."""
+    depth, masks = _scene(renderer, [MUSTARD])
+    start = GT[MUSTARD].copy()
+    start[:3, 3] += offset
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    print(offset, res.accepted, res.reason, f"fitness {res.fitness:.3f}", _errors(res.TCO, GT[MUSTARD]))
+    if reason:
+        assert not res.accepted and reason in res.reason and np.array_equal(res.TCO, start)
+    if res.accepted:
+        assert _errors(res.TCO, GT[MUSTARD])[0] < 5.0
+
+
+def test_rotation_limit(renderer):
+    depth, masks = _scene(renderer, [MUSTARD])
+    start = _perturbed(GT[MUSTARD], 5.0, 0.0, 2)
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD, IcpConfig(max_rotation_deg=2.0))
+    assert not res.accepted and "max_rotation_deg 2.0" in res.reason and res.delta_rotation_deg == pytest.approx(5.0, abs=1.0)
+
+
+def test_input_errors(renderer):
+    depth, masks = _scene(renderer, [MUSTARD])
+    bad = GT[MUSTARD].copy()
+    bad[0, 3] = np.nan
+    with pytest.raises(ValueError, match=r"TCO is not finite .* index \[0\]"):
+        refine_pose_icp(bad, K, depth, masks[0], renderer, MUSTARD)
+    with pytest.raises(ValueError, match="masks must be"):
+        refine_pose_icp(GT[MUSTARD], K, depth, masks[0, :100], renderer, MUSTARD)
+    with pytest.raises(ValueError, match="TCO must be"):
+        refine_poses_icp(GT[MUSTARD][None], K, depth, masks, renderer, [MUSTARD, DRILL])
+    with pytest.raises(ValueError, match="same length"):
+        IcpConfig(max_correspondence_distances=[0.01], iterations=[5, 5])
+    with pytest.raises(ValueError, match="robust_kernel"):
+        IcpConfig(robust_kernel="tukee")
+    assert refine_poses_icp(np.zeros((0, 4, 4)), K, depth, np.zeros((0, *SIZE), bool), renderer, []) == []
+
+
+def test_config_loads_from_yaml(tmp_path):
+    from cosy_lite.config import load_config
+
+    path = tmp_path / "icp.yaml"
+    path.write_text("max_correspondence_distances: [0.03, 0.01]\niterations: [20, 10]\nrobust_kernel: huber\n")
+    cfg = load_config(IcpConfig, path, ["voxel_size=0.005"])
+    assert cfg.max_correspondence_distances == [0.03, 0.01] and cfg.robust_kernel == "huber" and cfg.voxel_size == 0.005
+    assert isinstance(IcpResult(np.eye(4), True).timings, dict)
