@@ -50,7 +50,7 @@ class PoseSample(_Movable):
     The image is the full frame (no crop): crops are made on batches by the training loop.
     """
 
-    rgb: Tensor  # [3,H,W] uint8 (float [0,1] if an augmentation was applied)
+    rgb: Tensor  # [3,H,W] uint8 (augmented or not)
     K: Tensor  # [3,3] float32 camera intrinsics of the full image
     TCO: Tensor  # [4,4] float32 object-to-camera ground truth [m]
     obj_id: int
