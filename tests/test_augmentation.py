@@ -166,6 +166,10 @@ def test_bad_inputs_are_named():
         StrongAugmentation(AugmentationConfig(p_contrast=1.5))
     with pytest.raises(ValueError, match="brightness"):
         StrongAugmentation(AugmentationConfig(brightness=(2.0, 1.0)))
+    with pytest.raises(ValueError, match="p_background"):
+        StrongAugmentation(AugmentationConfig(p_background=-0.1))
+    with pytest.raises(ValueError, match="blur_sigma"):
+        StrongAugmentation(AugmentationConfig(blur_sigma=(0, 3)))
     x, m = images(2)
     with pytest.raises(ValueError, match="masks_any"):
         StrongAugmentation()(x, m[:1])

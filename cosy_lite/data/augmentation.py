@@ -109,7 +109,8 @@ def gaussian_matrices(n: int, sigmas: Tensor) -> Tensor:
     offsets = torch.arange(-r, r + 1, dtype=sigmas.dtype, device=sigmas.device)
     k = torch.exp(-0.5 * (offsets[None] / sigmas[:, None]) ** 2)  # [N,2r+1]
     k = k / k.sum(dim=1, keepdim=True)
-    src = (torch.arange(n, device=sigmas.device)[:, None] + torch.arange(-r, r + 1, device=sigmas.device)[None]).clamp_(0, n - 1)
+    steps = torch.arange(-r, r + 1, device=sigmas.device)
+    src = (torch.arange(n, device=sigmas.device)[:, None] + steps[None]).clamp_(0, n - 1)  # [n,2r+1]
     G = torch.zeros((len(sigmas), n, n), dtype=sigmas.dtype, device=sigmas.device)
     return G.scatter_add_(2, src.expand(len(sigmas), -1, -1), k[:, None, :].expand(-1, n, -1))
 
@@ -157,19 +158,24 @@ class StrongAugmentation:
     of any object, kept by background replacement; None skips background replacement). Returns a
     new tensor of the same dtype, shape and device. Randomness comes from ``generator`` (a CPU
     ``torch.Generator``; None: torch's global RNG, which DataLoader workers seed differently).
+    The number of random draws does not depend on the image content, so a seed fixes the result.
     """
 
     def __init__(self, cfg: AugmentationConfig | None = None, backgrounds: BackgroundPool | None = None):
         self.cfg = cfg if cfg is not None else AugmentationConfig()
         self._backgrounds = backgrounds
-        for name, (_, p_field, range_field) in PHOTOMETRIC_OPS.items():
-            p = getattr(self.cfg, p_field)
+        p_fields = ["p_background", "p_photometric"] + [p for _, p, _ in PHOTOMETRIC_OPS.values()]
+        for field in p_fields:
+            p = getattr(self.cfg, field)
             if not 0.0 <= p <= 1.0:
-                raise ValueError(f"AugmentationConfig.{p_field}: probability must be in [0, 1], got {p}")
-            if range_field is not None:
-                lo, hi = getattr(self.cfg, range_field)
+                raise ValueError(f"AugmentationConfig.{field}: probability must be in [0, 1], got {p}")
+        for _, _, field in PHOTOMETRIC_OPS.values():
+            if field is not None:
+                lo, hi = getattr(self.cfg, field)
                 if not 0.0 <= lo <= hi:
-                    raise ValueError(f"AugmentationConfig.{range_field}: need 0 <= low <= high, got ({lo}, {hi})")
+                    raise ValueError(f"AugmentationConfig.{field}: need 0 <= low <= high, got ({lo}, {hi})")
+        if self.cfg.blur_sigma[0] < 1:
+            raise ValueError(f"AugmentationConfig.blur_sigma: the smallest sigma must be >= 1 px, got {self.cfg.blur_sigma}")
 
     @property
     def backgrounds(self) -> BackgroundPool:
@@ -177,39 +183,50 @@ class StrongAugmentation:
             self._backgrounds = BackgroundPool(seed=0, photo_fraction=self.cfg.background_photo_fraction)
         return self._backgrounds
 
-    def __call__(self, images: Tensor, masks_any: Tensor | None = None, generator: torch.Generator | None = None) -> Tensor:
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise ValueError(f"StrongAugmentation: images must be [B,3,H,W], got {tuple(images.shape)}")
-        if masks_any is not None and (masks_any.shape != (images.shape[0], *images.shape[2:])):
-            raise ValueError(
-                f"StrongAugmentation: masks_any must be [B,H,W] = {(images.shape[0], *images.shape[2:])}, got {tuple(masks_any.shape)}"
-            )
-        is_uint8 = images.dtype == torch.uint8
-        if not is_uint8 and not images.is_floating_point():
-            raise ValueError(f"StrongAugmentation: images must be uint8 or float, got {images.dtype}")
+    def __call__(self, images: Tensor, masks_any: Tensor | None = None,
+                 generator: torch.Generator | None = None) -> Tensor:
+        self._check(images, masks_any)
         if not self.cfg.enabled or images.shape[0] == 0:
             return images.clone()
+        is_uint8 = images.dtype == torch.uint8
         x = images.float() / 255.0 if is_uint8 else images.clone()
-        B, _, H, W = x.shape
-        cfg = self.cfg
-
-        def draw(p: float) -> Tensor:  # [B] bool on CPU
-            return torch.rand(B, generator=generator) < p
-
         if masks_any is not None:
-            replace = draw(cfg.p_background)
-            if replace.any():
-                idx = replace.nonzero().flatten()
-                seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-                bg = self.backgrounds.sample(len(idx), H, W, np.random.default_rng(seed))
-                bg = bg.to(x.device, x.dtype) / 255.0
-                keep = masks_any[idx.to(masks_any.device)].to(x.device).unsqueeze(1)
-                idx = idx.to(x.device)
-                x[idx] = torch.where(keep, x[idx], bg)
+            self._replace_backgrounds(x, masks_any, generator)
+        self._photometric(x, generator)
+        if is_uint8:
+            return (x * 255.0).round_().clamp_(0, 255).to(torch.uint8)
+        return x.to(images.dtype)
 
-        block = draw(cfg.p_photometric)
-        for name, (fn, p_field, range_field) in PHOTOMETRIC_OPS.items():
-            apply = block & draw(getattr(cfg, p_field))
+    @staticmethod
+    def _check(images: Tensor, masks_any: Tensor | None) -> None:
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"StrongAugmentation: images must be [B,3,H,W], got {tuple(images.shape)}")
+        if images.dtype != torch.uint8 and not images.is_floating_point():
+            raise ValueError(f"StrongAugmentation: images must be uint8 or float, got {images.dtype}")
+        want = (images.shape[0], *images.shape[2:])
+        if masks_any is not None and tuple(masks_any.shape) != want:
+            raise ValueError(f"StrongAugmentation: masks_any must be [B,H,W] = {want}, got {tuple(masks_any.shape)}")
+
+    def _replace_backgrounds(self, x: Tensor, masks_any: Tensor, generator: torch.Generator | None) -> None:
+        """In place on float ``x`` [B,3,H,W]: mask-0 pixels of a random subset replaced (p_background)."""
+        B, _, H, W = x.shape
+        replace = torch.rand(B, generator=generator) < self.cfg.p_background
+        seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+        if not replace.any():
+            return
+        idx = replace.nonzero().flatten()
+        bg = self.backgrounds.sample(len(idx), H, W, np.random.default_rng(seed)).to(x.device, x.dtype) / 255.0
+        keep = masks_any[idx.to(masks_any.device)].to(x.device).unsqueeze(1)
+        idx = idx.to(x.device)
+        x[idx] = torch.where(keep, x[idx], bg)
+
+    def _photometric(self, x: Tensor, generator: torch.Generator | None) -> None:
+        """In place on float ``x``: with p_photometric, each op of PHOTOMETRIC_OPS with its own p."""
+        B = x.shape[0]
+        cfg = self.cfg
+        block = torch.rand(B, generator=generator) < cfg.p_photometric
+        for fn, p_field, range_field in PHOTOMETRIC_OPS.values():
+            apply = block & (torch.rand(B, generator=generator) < getattr(cfg, p_field))
             if range_field is None:
                 factors = torch.zeros(B)
             elif range_field in INTEGER_RANGES:
@@ -220,8 +237,5 @@ class StrongAugmentation:
                 factors = lo + (hi - lo) * torch.rand(B, generator=generator)
             if apply.any():
                 idx = apply.nonzero().flatten()
-                x[idx.to(x.device)] = fn(x[idx.to(x.device)], factors[idx].to(x.device))
-
-        if is_uint8:
-            return (x * 255.0).round_().clamp_(0, 255).to(torch.uint8)
-        return x.to(images.dtype)
+                on = idx.to(x.device)
+                x[on] = fn(x[on], factors[idx].to(x.device))
