@@ -262,15 +262,43 @@ def _render_in_child(renderer, queue) -> None:
         queue.put(str(e))
 
 
-def test_forked_child_of_a_rendering_process_raises_instead_of_hanging(renderer, meshes):
+def test_forked_child_of_a_rendering_process_raises_instead_of_hanging(renderer):
+    """Mesa's EGL hangs in a child forked after the parent made a context: the renderer (whose
+    inherited GL state must not even be freed there) raises and names the remedy."""
     renderer.render([SPHERE], _T()[None], K, RES)  # this process has an EGL context
     ctx = mp.get_context("fork")
     queue = ctx.Queue()
-    child = ctx.Process(target=_render_in_child, args=(PyrenderRenderer({SPHERE: meshes[SPHERE]}), queue))
+    child = ctx.Process(target=_render_in_child, args=(renderer, queue))
     child.start()
-    message = queue.get(timeout=60)
-    child.join(timeout=60)
+    try:
+        message = queue.get(timeout=60)
+    finally:
+        child.join(timeout=10)
+        child.kill()
     assert "forked from process" in message and "spawn" in message
+
+
+def test_closing_a_renderer_leaves_other_contexts_alive(renderer, meshes):
+    """close() and garbage collection destroy only the renderer's own context (no eglTerminate)."""
+    import gc
+
+    from cosy_lite.render.object_renderer import ObjectRenderer
+
+    other = ObjectRenderer({BOX: meshes[BOX]})
+    T = _T(t=(0.0, 0.0, 0.6))[None]
+    _, before = other.render([BOX], T, K, RES[1], RES[0], depth_only=True)
+    try:
+        for close in (True, False):
+            r = PyrenderRenderer({BOX: meshes[BOX]})
+            r.render([BOX], T, K, RES)
+            if close:
+                r.close()
+            del r
+            gc.collect()
+            _, after = other.render([BOX], T, K, RES[1], RES[0], depth_only=True)  # fails if the display was terminated
+            np.testing.assert_array_equal(after, before)
+    finally:
+        other.delete()  # now, not at some later garbage collection (it terminates the EGL display)
 
 
 def test_survives_pyrender_terminating_the_display(renderer, meshes):

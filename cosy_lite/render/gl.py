@@ -87,7 +87,8 @@ class EglContext:
         EGL.eglMakeCurrent(self._platform._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
 
     def destroy(self) -> None:
-        """Destroy the context and every GL object in it (idempotent; a no-op in another process)."""
+        """Destroy the context and every GL object in it (idempotent). In a forked child, only
+        forget the parent's handles: any EGL call there would hang."""
         from OpenGL import EGL
 
         p = self._platform
@@ -97,4 +98,12 @@ class EglContext:
                 EGL.eglDestroyContext(p._egl_display, p._egl_context)
             except Exception:  # display already terminated (by another renderer): the context is gone
                 pass
+        # With no handles left, pyrender's Platform.__del__ neither destroys nor eglTerminates.
         p._egl_context = None
+        p._egl_display = None
+
+    def __del__(self) -> None:
+        try:
+            self.destroy()
+        except Exception:
+            pass

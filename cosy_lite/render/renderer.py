@@ -468,7 +468,8 @@ class PyrenderRenderer:
     def _current_gl_state(self) -> _GlState:
         """This process's GL state, its context current in this thread (created on first use)."""
         if self._gl is not None and self._gl.context.pid != os.getpid():
-            self._gl = None  # inherited from the parent by fork: not ours to use or free
+            self._gl.context.destroy()  # inherited by fork: only forgets the parent's handles
+            self._gl = None
         if self._gl is not None:
             try:
                 self._gl.context.make_current()
@@ -476,6 +477,7 @@ class PyrenderRenderer:
             except Exception:
                 # The display was terminated under us (pyrender's OffscreenRenderer.delete() calls
                 # eglTerminate, destroying every context of the process): start again.
+                self._gl.context.destroy()
                 self._gl = None
         self._gl = _create_gl_state(self.device_index)  # current on creation; meshes re-uploaded lazily
         return self._gl
@@ -535,12 +537,6 @@ class PyrenderRenderer:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def __del__(self) -> None:
-        try:
-            if self._gl is not None:
-                self._gl.context.destroy()
-        except Exception:
-            pass
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()

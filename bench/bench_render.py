@@ -1,0 +1,163 @@
+"""Benchmark of the batched renderer: renders/s of B crops per call, RGB+depth and depth-only.
+
+Usage: python bench/bench_render.py [--models DIR] [--objects 2 3 4 5 8 9] [--batches 8 32]
+       [--resolutions 240x320 120x160] [--calls 10] [--baselines]
+
+Models: ``DIR`` (a BOP ``models/`` folder, default ``data/ycbv-synth/models`` when present), else
+the YCB-V library's models written to a temporary folder by ``cosy_lite.synth.objects``. Default
+objects: the six textured YCB-V models (16384 faces, 1024x1024 textures). Poses: uniformly random
+rotations, the object's centre near the crop's centre, at the depth where its diameter spans the
+crop height (a CosyPose crop holds the object's box enlarged ~1.4x). Each configuration: one
+warm-up call, then ``--calls`` calls on the same batch; the table gives the median and best
+renders/s. ``--baselines`` adds, at the first resolution and largest batch: pyrender with a Scene
+per crop (``ObjectRenderer``, what the evaluator uses), pyrender with one Scene whose nodes are
+toggled, and this renderer without back-face culling and with one crop in flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+TEXTURED_YCBV = [2, 3, 4, 5, 8, 9]
+DEFAULT_MODELS = Path("data/ycbv-synth/models")
+YCBV_FX = 1066.778  # YCB-V focal length (px) at 640x480; crops use it scaled to their height
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    h, w = text.lower().split("x")
+    return int(h), int(w)
+
+
+def crop_batch(meshes: dict, obj_ids: list[int], B: int, resolution: tuple[int, int], seed: int = 0):
+    """B random (obj_id, TCO [4,4] m) and the crop K [3,3] at ``resolution`` (H, W)."""
+    from scipy.spatial.transform import Rotation
+
+    H, W = resolution
+    rng = np.random.default_rng(seed)
+    f = YCBV_FX * H / 480
+    K = np.array([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
+    ids = [obj_ids[k] for k in rng.integers(0, len(obj_ids), B)]
+    TCO = np.tile(np.eye(4), (B, 1, 1))
+    TCO[:, :3, :3] = Rotation.random(B, random_state=seed).as_matrix()
+    for i, obj_id in enumerate(ids):
+        v = np.asarray(meshes[obj_id].vertices)
+        diameter = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+        z = f * diameter / H
+        TCO[i, :3, 3] = [*(rng.uniform(-0.05, 0.05, 2) * diameter), z]
+    return ids, TCO, K
+
+
+def time_calls(fn: Callable[[], object], calls: int) -> list[float]:
+    fn()  # warm-up: meshes uploaded, framebuffers made
+    out = []
+    for _ in range(calls):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return out
+
+
+class PyrenderSceneToggle:
+    """Baseline: one pyrender Scene with every object node added once, toggled visible per crop."""
+
+    def __init__(self, meshes: dict, resolution: tuple[int, int]):
+        from cosy_lite.render.gl import intrinsics_camera, pyrender_module
+
+        pyrender = pyrender_module()
+        H, W = resolution
+        self.scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[1.0, 1.0, 1.0])
+        self.nodes = {}
+        for obj_id, mesh in meshes.items():
+            m = pyrender.Mesh.from_trimesh(mesh)
+            for p in m.primitives:
+                p.material.baseColorFactor = np.ones(4)  # pyrender takes trimesh's 0.4 diffuse otherwise
+            m.is_visible = False
+            self.nodes[obj_id] = self.scene.add(m)
+        self.camera = intrinsics_camera(np.eye(3))
+        self.scene.add(self.camera, pose=np.eye(4))
+        self.renderer = pyrender.OffscreenRenderer(W, H)
+        self.flags = pyrender.RenderFlags.FLAT
+
+    def render(self, ids, TCO, K):
+        from cosy_lite.render.gl import CV_TO_GL
+
+        self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        out = []
+        for obj_id, T in zip(ids, TCO):
+            node = self.nodes[obj_id]
+            node.mesh.is_visible = True
+            self.scene.set_pose(node, CV_TO_GL @ T)
+            out.append(self.renderer.render(self.scene, flags=self.flags))
+            node.mesh.is_visible = False
+        return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", type=Path, default=None, help="BOP models/ folder (default: data/ycbv-synth/models if present)")
+    ap.add_argument("--objects", type=int, nargs="+", default=TEXTURED_YCBV)
+    ap.add_argument("--batches", type=int, nargs="+", default=[8, 32])
+    ap.add_argument("--resolutions", type=parse_resolution, nargs="+", default=[(240, 320), (120, 160)])
+    ap.add_argument("--calls", type=int, default=10)
+    ap.add_argument("--baselines", action="store_true")
+    args = ap.parse_args(argv)
+
+    from cosy_lite.render.renderer import PyrenderRenderer
+
+    with tempfile.TemporaryDirectory() as tmp:
+        models = args.models or (DEFAULT_MODELS if DEFAULT_MODELS.is_dir() else None)
+        if models is None:
+            from cosy_lite.synth.objects import write_bop_models
+
+            write_bop_models(args.objects, Path(tmp))
+            models = Path(tmp) / "models"
+        renderer = PyrenderRenderer(models_dir=models)
+        t = time.perf_counter()
+        meshes = {i: renderer.mesh(i) for i in args.objects}
+        t_load = time.perf_counter() - t
+        t = time.perf_counter()
+        renderer.render(args.objects, np.tile(np.eye(4), (len(args.objects), 1, 1)), np.eye(3), (8, 8))
+        t_upload = time.perf_counter() - t
+        faces = sorted({len(m.faces) for m in meshes.values()})
+        print(f"models: {models} objects {args.objects} faces {faces}; {platform.node()} {platform.processor() or platform.machine()}")
+        print(f"first use: read {t_load:.2f} s, upload + cull check {t_upload:.2f} s for {len(meshes)} meshes")
+        print("| resolution | batch | output | renders/s (median) | renders/s (best) | ms/call (median) | mask fraction |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        rows = []
+        for res in args.resolutions:
+            for B in args.batches:
+                ids, TCO, K = crop_batch(meshes, args.objects, B, res)
+                for depth_only in (False, True):
+                    ts = time_calls(lambda: renderer.render(ids, TCO, K, res, depth_only=depth_only), args.calls)
+                    mask = renderer.render(ids, TCO, K, res, depth_only=True).mask.mean()
+                    rows.append((f"{res[0]}x{res[1]}", B, "depth" if depth_only else "rgb+depth", ts, mask))
+        if args.baselines:
+            res, B = args.resolutions[0], max(args.batches)
+            ids, TCO, K = crop_batch(meshes, args.objects, B, res)
+            from cosy_lite.render.object_renderer import ObjectRenderer
+
+            per_scene = ObjectRenderer(meshes)
+            toggle = PyrenderSceneToggle(meshes, res)
+            variants = {
+                "pyrender, Scene per crop (ObjectRenderer)": lambda: per_scene.render(ids, TCO, K, res[1], res[0]),
+                "pyrender, one Scene, nodes toggled": lambda: toggle.render(ids, TCO, K),
+                "this, no back-face culling": PyrenderRenderer(meshes, cull_back_faces=False),
+                "this, 1 crop in flight": PyrenderRenderer(meshes, max_in_flight=1),
+            }
+            for name, v in variants.items():
+                fn = v if callable(v) else (lambda r=v: r.render(ids, TCO, K, res))
+                rows.append((f"{res[0]}x{res[1]}", B, f"rgb+depth, {name}", time_calls(fn, args.calls), float("nan")))
+        for res_s, B, out, ts, mask in rows:
+            med, best = float(np.median(ts)), min(ts)
+            print(f"| {res_s} | {B} | {out} | {B / med:.0f} | {B / best:.0f} | {1000 * med:.1f} | {mask:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
