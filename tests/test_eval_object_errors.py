@@ -123,3 +123,17 @@ def test_bad_inputs_raise():
         ObjectErrors.from_model(np.zeros((3, 2)), np.eye(4)[None], 0.1)
     with pytest.raises(ValueError, match="syms"):
         ObjectErrors.from_model(np.zeros((3, 3)), np.zeros((0, 4, 4)), 0.1)
+
+
+def test_adi_cap_skips_only_pairs_provably_beyond_it():
+    pts = _lumpy()
+    fast = ObjectErrors.from_model(pts, np.eye(4)[None], 0.15)
+    gt = np.eye(4)
+    gt[2, 3] = 0.8
+    near, far = gt.copy(), gt.copy()
+    near[0, 3] += 0.03  # ADI < 3 cm
+    far[0, 3] += 0.4  # every vertex > 0.4 - 2 x 0.07 m from the other pose
+    exact = fast.adi(np.stack([near, far]), gt)
+    capped = fast.adi(np.stack([near, far]), gt, cap=0.1)
+    assert capped[0] == exact[0] and exact[0] < 0.03
+    assert capped[1] == np.inf and exact[1] > 0.2

@@ -293,3 +293,11 @@ def test_auc_of_add_s_uses_adi_for_objects_with_symmetries(root: Path):
     s = _evaluate(root, ests).scores
     assert s.per_object[2].auc_add_s == pytest.approx(1.0) and s.per_object[2].auc_adi == pytest.approx(1.0)
     assert s.per_object[1].auc_add_s == pytest.approx(1.0)
+
+
+def test_auc_matching_ignores_errors_of_10_cm_and_more():
+    # Two GT instances; the higher-scored estimate is >= 10 cm from both (it adds nothing and takes
+    # nothing), the second is 1 cm from GT 0: AUC = mean(0.9, 0) = 0.45. (Taking GT 0 with 15 cm
+    # would push the second estimate onto GT 1 at 50 cm: AUC 0.)
+    s = score_targets([_target(1, [[0.15, 0.2], [0.01, 0.5]], [True, True])], DIAM, 640)
+    assert s.auc_add_s == pytest.approx(0.45) and s.auc_adi == pytest.approx(0.45)

@@ -9,8 +9,9 @@ compared with every GT instance of that object, as bop_toolkit ``eval_calc_error
   pairs needs it), inside its own window; a pair is scored on the union of the two windows,
   which holds every pixel where either model is rendered, so the result equals a full-image VSD.
 * **MSSD** is +inf where the bounding spheres do not overlap (``||t_e - t_g|| >= diameter``), as
-  the toolkit; **MSPD** is always computed, as the toolkit. **ADD, ADI** are always computed (they
-  only feed the YCB-V AUC, defined by PoseCNN without the toolkit's shortcut).
+  the toolkit; **MSPD** is always computed, as the toolkit. **ADD, ADI** only feed the YCB-V AUC
+  (PoseCNN's, without the toolkit's shortcut): ADD is always computed, ADI too unless it is
+  provably >= 10 cm (then +inf: such errors add nothing to the AUC and are never matched).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from cosy_lite.bop.results import PoseEstimate
 from cosy_lite.eval import pose_errors
 from cosy_lite.eval.depth_renderer import Window, WindowDepthRenderer, object_window
 from cosy_lite.eval.object_errors import ObjectErrors
-from cosy_lite.eval.scoring import VSD_TAUS
+from cosy_lite.eval.scoring import AUC_MAX_M, VSD_TAUS
 
 
 @dataclass
@@ -107,7 +108,7 @@ class ImageErrors:
             out.mssd[:, g], out.mspd[:, g] = obj.mssd_mspd(T_est, T_gt, self.K)
             out.mssd[~near, g] = np.inf
             out.add[:, g] = obj.add(T_est, T_gt)
-            out.adi[:, g] = obj.adi(T_est, T_gt)
+            out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
             for e in range(E):
                 if pose_errors.sphere_projections_overlap(radius, T_est[e, :3, 3], T_gt[:3, 3]):
                     out.vsd[e, g] = self._vsd(obj_id, obj, ("est", obj_id, e), T_est[e], ("gt", gkey), T_gt)

@@ -119,6 +119,8 @@ class ObjectErrors:
     hull: np.ndarray  # [H,3] convex hull vertices
     probes: list[np.ndarray] = field(default_factory=list)  # per level [P,3], subsets of hull
     tree: cKDTree | None = None
+    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))  # [3] bounding-box centre
+    radius: float = 0.0  # max distance of a vertex from ``centre``
 
     @staticmethod
     def from_model(pts: np.ndarray, syms: np.ndarray, diameter: float) -> ObjectErrors:
@@ -131,7 +133,9 @@ class ObjectErrors:
         hull = pts[hull_vertex_indices(pts)]
         order = farthest_point_order(hull, max(PROBE_SIZES))
         probes = [hull[order[:n]] for n in PROBE_SIZES]
-        return ObjectErrors(pts, syms, float(diameter), hull, probes, cKDTree(pts))
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        radius = float(np.linalg.norm(pts - centre, axis=1).max())
+        return ObjectErrors(pts, syms, float(diameter), hull, probes, cKDTree(pts), centre, radius)
 
     # ------------------------------------------------------------------ MSSD / MSPD
     def mssd_mspd(self, TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -176,12 +180,23 @@ class ObjectErrors:
         d = self.pts[None] @ np.swapaxes(A, 1, 2) + b[:, None]
         return np.sqrt(np.einsum("epd,epd->ep", d, d)).mean(axis=1)
 
-    def adi(self, TCO_est: np.ndarray, TCO_gt: np.ndarray) -> np.ndarray:
-        """ADI / ADD-S [E] (m): mean over GT-posed vertices of the distance to the nearest estimated-posed vertex."""
+    def adi(self, TCO_est: np.ndarray, TCO_gt: np.ndarray, cap: float | None = None) -> np.ndarray:
+        """ADI / ADD-S [E] (m): mean over GT-posed vertices of the distance to the nearest estimated-posed vertex.
+
+        With ``cap`` (m), a pair whose ADI is provably >= ``cap`` gets +inf without the nearest-neighbour
+        search (slow for far-apart poses): every estimated-posed vertex lies within ``radius`` of the
+        posed ``centre``, so ``ADI >= mean_v max(0, |T_g v - T_e centre| - radius)``.
+        """
         TCO_est = np.asarray(TCO_est, dtype=np.float64).reshape(-1, 4, 4)
         out = np.empty(len(TCO_est))
         for i, T in enumerate(TCO_est):
             M = np.linalg.solve(T, np.asarray(TCO_gt, dtype=np.float64))  # T_e^-1 T_g
-            dist, _ = self.tree.query(self.pts @ M[:3, :3].T + M[:3, 3], k=1)
+            q = self.pts @ M[:3, :3].T + M[:3, 3]  # GT-posed vertices in the estimate's model frame
+            if cap is not None:
+                lower = np.maximum(np.linalg.norm(q - self.centre, axis=1) - self.radius, 0.0).mean()
+                if lower >= cap:
+                    out[i] = np.inf
+                    continue
+            dist, _ = self.tree.query(q, k=1)
             out[i] = dist.mean()
         return out

@@ -11,6 +11,11 @@ instances with ``visib_fract >= 0.1`` (that is how ``inst_count`` was made). Inv
 be neither matched nor counted. Recall = matched valid GT / valid GT, pooled over all targets; 0
 when there is none. Errors are normalised as the toolkit does before thresholding (MSSD / diameter,
 MSPD x 640 / image width).
+
+AUC of ADD(-S) (YCB-V, PoseCNN): per target, estimates in decreasing score take the lowest-error
+free valid GT instance if that error is below 10 cm (the largest error the curve counts); each valid
+GT instance contributes its matched error (inf if none). With one instance per object and image,
+as in YCB-V, this is the usual per-instance AUC.
 """
 
 from __future__ import annotations
@@ -213,7 +218,7 @@ def score_targets(
             tp[o]  # noqa: B018 (creates the zero entry)
         valid_idx = np.nonzero(t.gt_valid)[0]
         for name, errs in (("add_s", t.adi if o in symmetric_obj_ids else t.add), ("adi", t.adi)):
-            m = match_greedy(errs, t.gt_valid, [np.inf])[0]
+            m = match_greedy(errs, t.gt_valid, [AUC_MAX_M])[0]  # errors >= 10 cm add nothing to the AUC
             auc_err[name][o] += [float(errs[m[g], g]) if m[g] >= 0 else np.inf for g in valid_idx]
 
     per_object = {}
