@@ -155,6 +155,19 @@ def test_texture_colours_are_trimesh_texture(renderer, meshes):
     assert np.sort(counts)[-16:].sum() > 0.8 * out.mask[0].sum()
 
 
+def test_face_colours_and_a_material_colour():
+    box = trimesh.creation.box(extents=BOX_EXTENTS)
+    facing = box.face_normals[:, 2] < -0.9  # the two triangles seen by a camera looking along +z
+    box.visual.face_colors = np.where(facing[:, None], [[0, 255, 0, 255]], [[255, 0, 0, 255]])
+    plain = trimesh.creation.box(extents=BOX_EXTENTS)
+    plain.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.SimpleMaterial(diffuse=[10, 200, 30, 255]))
+    with PyrenderRenderer({1: box, 2: plain}) as r:
+        out = r.render([1, 2], np.stack([_T(t=(0.0, 0.0, 0.7))] * 2), K, RES)
+    for i, rgb in enumerate([(0, 255, 0), (10, 200, 30)]):
+        assert out.mask[i].sum() > 1000
+        np.testing.assert_array_equal(np.unique(out.rgb[i][out.mask[i]], axis=0), [rgb])
+
+
 def test_textured_ycb_model_is_not_one_colour(renderer):
     out = renderer.render([YCB], _T(_rot("x", 100), (0.0, 0.0, 0.4))[None], K, RES)
     pixels = out.rgb[0][out.mask[0]].astype(float)

@@ -56,7 +56,7 @@ class RenderOutput:
         depth = torch.from_numpy(self.depth).to(device).unsqueeze(1)
         if self.rgb is None:
             return None, depth
-        rgb = torch.from_numpy(self.rgb).to(device).permute(0, 3, 1, 2).float().div_(255.0)
+        rgb = torch.from_numpy(self.rgb).to(device).permute(0, 3, 1, 2).contiguous().float().div_(255.0)
         return rgb, depth
 
 
@@ -168,13 +168,13 @@ def mesh_arrays(mesh: trimesh.Trimesh) -> MeshArrays:
     vertices = np.asarray(mesh.vertices, dtype=np.float32)
     faces = np.asarray(mesh.faces, dtype=np.uint32)
     visual = mesh.visual
-    if isinstance(visual, trimesh.visual.TextureVisuals) and visual.uv is not None:
+    if isinstance(visual, trimesh.visual.TextureVisuals):
         image, factor = _texture_image(visual.material)
-        if image is not None:
+        if image is not None and visual.uv is not None:
             tex = np.asarray(image.convert("RGBA"), dtype=np.float64) * factor
             tex = np.clip(np.round(tex), 0, 255).astype(np.uint8)
             return MeshArrays(vertices, faces, uv=np.asarray(visual.uv, dtype=np.float32), texture=tex)
-        colors = visual.to_color().vertex_colors
+        colors = visual.material.main_color  # no image or no UVs: the material's colour
     elif getattr(visual, "kind", None) == "face":
         colors = np.repeat(np.asarray(visual.face_colors), 3, axis=0)
         vertices = vertices[faces].reshape(-1, 3)
