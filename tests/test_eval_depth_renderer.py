@@ -20,7 +20,7 @@ def _pose(t, R=np.eye(3)) -> np.ndarray:
     return T
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def renderer():
     from cosy_lite.eval.depth_renderer import WindowDepthRenderer
 
@@ -74,3 +74,20 @@ def test_object_windows():
 def test_unknown_object_raises(renderer):
     with pytest.raises(KeyError, match="obj_id 9"):
         renderer.render(9, _pose([0.0, 0.0, 0.5]), K, Window(0, 0, 4, 4))
+
+
+def test_closing_a_renderer_keeps_the_others_working(renderer):
+    # close() destroys its own EGL context only: eglTerminate would kill every context of the display
+    # (pyrender's delete() does terminate it, so it comes last).
+    from cosy_lite.eval.depth_renderer import WindowDepthRenderer
+    from cosy_lite.render.object_renderer import ObjectRenderer
+
+    box = trimesh.creation.box(extents=2 * HALF)
+    pyr = ObjectRenderer({3: box})
+    T = _pose([0.0, 0.0, 0.5])
+    n_pyr = np.count_nonzero(pyr.render([3], T[None], K, W, H, depth_only=True)[1])
+    with WindowDepthRenderer({3: (box.vertices, box.faces)}, W, H) as other:
+        assert np.count_nonzero(other.render(3, T, K, Window(0, 0, W, H))) == 26 * 42
+    assert np.count_nonzero(renderer.render(3, T, K, Window(0, 0, W, H))) == 26 * 42
+    assert np.count_nonzero(pyr.render([3], T[None], K, W, H, depth_only=True)[1]) == n_pyr
+    pyr.delete()

@@ -129,6 +129,7 @@ class WindowDepthRenderer:
         self._platform = EGLPlatform(self.width, self.height)
         self._platform.init_context()
         self._platform.make_current()
+        self._fbo = None
         self._gl_objects: dict[int, tuple[int, int, int, int]] = {}  # obj_id -> vao, vbo, ebo, n_indices
         self._zbounds: dict[int, np.ndarray] = {}  # obj_id -> [8,3] bounding box corners (m)
         try:
@@ -237,20 +238,38 @@ class WindowDepthRenderer:
         return np.frombuffer(buf, dtype=np.float32).reshape(h, w)[::-1].copy()
 
     def close(self) -> None:
-        """Release the GL objects and the context (idempotent)."""
+        """Release the GL objects and the context (idempotent).
+
+        Only this renderer's context is destroyed; the EGL display is left initialised, because
+        ``eglTerminate`` would also invalidate the contexts of other renderers of the process (as
+        deleting a pyrender ``OffscreenRenderer`` does: after that, this renderer is unusable too
+        and ``close`` only forgets its handles).
+        """
         if self._platform is None:
             return
-        try:
-            from OpenGL import GL as gl
+        from OpenGL import EGL
+        from OpenGL import GL as gl
+        from OpenGL.error import GLError
 
-            self._platform.make_current()
-            for vao, vbo, ebo, _ in self._gl_objects.values():
+        platform, self._platform = self._platform, None
+        display, context = platform._egl_display, platform._egl_context
+        platform._egl_context = None
+        platform._egl_display = None  # keeps pyrender's Platform.__del__ from terminating the display
+        objects, self._gl_objects = list(self._gl_objects.values()), {}
+        if context is None:
+            return
+        try:
+            EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, context)
+            for vao, vbo, ebo, _ in objects:
                 gl.glDeleteVertexArrays(1, [vao])
                 gl.glDeleteBuffers(2, [vbo, ebo])
-            self._gl_objects.clear()
-        finally:
-            self._platform.delete_context()
-            self._platform = None
+            if self._fbo is not None:
+                gl.glDeleteFramebuffers(1, [self._fbo])
+                gl.glDeleteRenderbuffers(2, [self._color, self._depth])
+            EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+            EGL.eglDestroyContext(display, context)
+        except GLError:  # the display was terminated by someone else: nothing left to release
+            pass
 
     def __enter__(self) -> WindowDepthRenderer:
         return self
