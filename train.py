@@ -1,8 +1,9 @@
 """Train a cosy_lite model: ``python train.py --dataset ycbv-synth --model detector|coarse|refiner``.
 
-Thin wrapper: parse, find (or generate) the dataset, validate it, hand over to the trainer of the
-model from the TRAINERS table. The trainers arrive with their issues (detector: #5, coarse and
-refiner: #4); until then the command stops with a clear message after preparing the data.
+Thin wrapper: parse, find (or generate) the dataset, validate it, hand over to
+:func:`cosy_lite.train.command.run` (config: ``configs/MODEL/PROFILE.yaml`` + ``key=value`` overrides).
+Resume an interrupted run (also after kill -9) with ``--resume`` and the same ``--out``.
+Multi-GPU / multi-node: ``torchrun --nproc_per_node N train.py ...`` (the same script).
 """
 
 from __future__ import annotations
@@ -11,8 +12,6 @@ import argparse
 import sys
 from pathlib import Path
 
-# model -> "module:function" taking (dataset_root, args); filled as the trainers land.
-TRAINERS: dict[str, str] = {}
 MODELS = ("detector", "coarse", "refiner")
 SYNTH_CONFIGS = {"ycbv-synth": None, "tiny": Path(__file__).parent / "configs" / "synth" / "tiny.yaml"}
 
@@ -22,6 +21,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", default="ycbv-synth", help="dataset name (folder under --data-root) or path")
     ap.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
     ap.add_argument("--model", choices=MODELS, required=True)
+    ap.add_argument("--profile", default="demo", help="configs/MODEL/PROFILE.yaml: demo (CPU, minutes) or full (GPUs)")
+    ap.add_argument("--config", default=None, help="a YAML config instead of the profile's")
+    ap.add_argument("--out", default=None, help="run folder (default runs/DATASET-MODEL)")
+    ap.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    ap.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. loop.steps=200 net.backbone=resnet18")
     args = ap.parse_args(argv)
 
     from cosy_lite.bop.validate import check_dataset, report
@@ -39,14 +43,10 @@ def main(argv: list[str] | None = None) -> int:
         generate(load_config(SynthConfig, SYNTH_CONFIGS[args.dataset]), root)
     if report(check_dataset(root, splits=["train_pbr"]), str(root)):
         return 1
-    if args.model not in TRAINERS:
-        print(f"error: training the {args.model!r} model is not implemented yet (see the open issues); "
-              f"the dataset {root} is ready", file=sys.stderr)
-        return 2
-    module, fn = TRAINERS[args.model].split(":")
-    import importlib
+    from cosy_lite.train.command import run
 
-    return int(getattr(importlib.import_module(module), fn)(root, args) or 0)
+    args.dataset_name = root.name
+    return run(root, args)
 
 
 if __name__ == "__main__":
