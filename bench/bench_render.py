@@ -17,6 +17,7 @@ toggled, and this renderer without back-face culling and with one crop in flight
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import tempfile
 import time
@@ -101,7 +102,8 @@ class PyrenderSceneToggle:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--models", type=Path, default=None, help="BOP models/ folder (default: data/ycbv-synth/models if present)")
+    ap.add_argument("--models", type=Path, default=None,
+                    help="BOP models/ folder (default: data/ycbv-synth/models if present)")
     ap.add_argument("--objects", type=int, nargs="+", default=TEXTURED_YCBV)
     ap.add_argument("--batches", type=int, nargs="+", default=[8, 32])
     ap.add_argument("--resolutions", type=parse_resolution, nargs="+", default=[(240, 320), (120, 160)])
@@ -126,9 +128,10 @@ def main(argv: list[str] | None = None) -> None:
         renderer.render(args.objects, np.tile(np.eye(4), (len(args.objects), 1, 1)), np.eye(3), (8, 8))
         t_upload = time.perf_counter() - t
         faces = sorted({len(m.faces) for m in meshes.values()})
-        print(f"models: {models} objects {args.objects} faces {faces}; {platform.node()} {platform.processor() or platform.machine()}")
+        print(f"models: {models} objects {args.objects} faces {faces}; {platform.machine()}, {os.cpu_count()} CPUs")
         print(f"first use: read {t_load:.2f} s, upload + cull check {t_upload:.2f} s for {len(meshes)} meshes")
-        print("| resolution | batch | output | renders/s (median) | renders/s (best) | ms/call (median) | mask fraction |")
+        print("| resolution | batch | output | renders/s (median) | renders/s (best) | ms/call (median) "
+              "| mask fraction |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
         rows = []
         for res in args.resolutions:

@@ -33,7 +33,8 @@ def _T(R: np.ndarray = np.eye(3), t=(0.0, 0.0, 0.5)) -> np.ndarray:
 
 def _quad_texture() -> Image.Image:
     """64x64 RGB, 4x4 blocks of 16 px, each its own colour."""
-    blocks = np.array([[(40 * i + 20, 60 * j + 10, 255 - 50 * i - 10 * j) for j in range(4)] for i in range(4)], np.uint8)
+    blocks = np.array([[(40 * i + 20, 60 * j + 10, 255 - 50 * i - 10 * j) for j in range(4)] for i in range(4)])
+    blocks = blocks.astype(np.uint8)
     return Image.fromarray(np.kron(blocks, np.ones((16, 16, 1), np.uint8)))
 
 
@@ -41,7 +42,8 @@ def _meshes() -> dict[int, trimesh.Trimesh]:
     from cosy_lite.synth.objects import load_ycb_mesh
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.06)
-    sphere.visual.vertex_colors = np.column_stack([(sphere.vertices / 0.12 + 0.5) * 255, np.full(len(sphere.vertices), 255)]).astype(np.uint8)
+    rgb = (sphere.vertices / 0.12 + 0.5) * 255
+    sphere.visual.vertex_colors = np.column_stack([rgb, np.full(len(rgb), 255)]).astype(np.uint8)
     box = trimesh.creation.box(extents=BOX_EXTENTS)
     box.visual.vertex_colors = np.tile(BOX_RGBA, (len(box.vertices), 1))
     a = QUAD_HALF
@@ -100,7 +102,8 @@ def test_mask_is_where_the_projected_mesh_is(renderer, meshes, obj_id):
     uv = (meshes[obj_id].vertices @ T[:3, :3].T + T[:3, 3]) @ K.T
     uv = uv[:, :2] / uv[:, 2:]
     rows, cols = np.nonzero(mask)
-    np.testing.assert_allclose([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], [*uv.min(0), *uv.max(0)], atol=1.0)
+    box = [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
+    np.testing.assert_allclose(box, [*uv.min(0), *uv.max(0)], atol=1.0)
 
 
 @pytest.mark.parametrize("cull", [None, True, False])
@@ -116,6 +119,22 @@ def test_depth_of_a_box_is_its_front_face(meshes, cull):
     assert np.all(depth[~mask] == 0)
     np.testing.assert_array_equal(out.rgb[0][mask], np.tile(BOX_RGBA[:3], (mask.sum(), 1)))
     assert np.all(out.rgb[0][~mask] == 0)
+
+
+def test_culling_is_not_used_where_it_would_show(meshes):
+    """An inward-wound sphere: forced culling shows its far side; the default (per-mesh check)
+    draws it two-sided, like cull_back_faces=False."""
+    inverted = meshes[SPHERE].copy()
+    inverted.invert()
+    T = _T(t=(0.0, 0.0, 0.5))[None]
+    depth = {}
+    for cull in (None, False, True):
+        with PyrenderRenderer({SPHERE: inverted}, cull_back_faces=cull) as r:
+            depth[cull] = r.render([SPHERE], T, K, RES).depth[0]
+    np.testing.assert_array_equal(depth[None], depth[False])
+    centre = depth[False][int(K[1, 2]), int(K[0, 2])]
+    assert centre == pytest.approx(0.5 - 0.06, abs=1e-3)
+    assert depth[True][int(K[1, 2]), int(K[0, 2])] == pytest.approx(0.5 + 0.06, abs=1e-3)
 
 
 def test_depth_of_a_tilted_plane_is_the_ray_intersection(renderer):
@@ -160,7 +179,8 @@ def test_face_colours_and_a_material_colour():
     facing = box.face_normals[:, 2] < -0.9  # the two triangles seen by a camera looking along +z
     box.visual.face_colors = np.where(facing[:, None], [[0, 255, 0, 255]], [[255, 0, 0, 255]])
     plain = trimesh.creation.box(extents=BOX_EXTENTS)
-    plain.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.SimpleMaterial(diffuse=[10, 200, 30, 255]))
+    material = trimesh.visual.material.SimpleMaterial(diffuse=[10, 200, 30, 255])
+    plain.visual = trimesh.visual.TextureVisuals(material=material)
     with PyrenderRenderer({1: box, 2: plain}) as r:
         out = r.render([1, 2], np.stack([_T(t=(0.0, 0.0, 0.7))] * 2), K, RES)
     for i, rgb in enumerate([(0, 255, 0), (10, 200, 30)]):
@@ -179,7 +199,9 @@ def test_textured_ycb_model_is_not_one_colour(renderer):
 def _batch():
     ids = [YCB, SPHERE, QUAD, BOX, YCB, SPHERE, BOX]
     rng = np.random.default_rng(3)
-    T = np.stack([_T(cv2.Rodrigues(rng.normal(size=3))[0], (*rng.uniform(-0.03, 0.03, 2), rng.uniform(0.35, 0.7))) for _ in ids])
+    T = np.stack([
+        _T(cv2.Rodrigues(rng.normal(size=3))[0], (*rng.uniform(-0.03, 0.03, 2), rng.uniform(0.35, 0.7))) for _ in ids
+    ])
     T[5, 2, 3] = -0.5  # behind the camera
     Ks = np.stack([K * [[s], [s], [1]] for s in rng.uniform(0.8, 1.2, len(ids))])
     return ids, T, Ks

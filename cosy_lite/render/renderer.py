@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 
 Resolution = tuple[int, int]  # (H, W) pixels
 CULL_CHECK_SIZE = 64  # px, side of the 14 views rendered to decide whether a mesh may be back-face culled
+MAX_IN_FLIGHT_PIXELS = 1 << 22  # crops drawn before read-back hold at most this many pixels (12 B each)
 
 
 @dataclass
@@ -264,7 +265,8 @@ def _create_gl_state(device_index: int | None) -> _GlState:
         kind: shaders.compileProgram(vs, shaders.compileShader(src, gl.GL_FRAGMENT_SHADER), validate=False)
         for kind, src in _FRAGMENT_SHADERS.items()
     }
-    uniforms = {k: (gl.glGetUniformLocation(p, "MVP"), gl.glGetUniformLocation(p, "z_row")) for k, p in programs.items()}
+    uniforms = {k: (gl.glGetUniformLocation(p, "MVP"), gl.glGetUniformLocation(p, "z_row"))
+                for k, p in programs.items()}
     gl.glUseProgram(programs["texture"])
     gl.glUniform1i(gl.glGetUniformLocation(programs["texture"], "color_texture"), 0)
     gl.glEnable(gl.GL_DEPTH_TEST)
@@ -277,7 +279,8 @@ def _create_gl_state(device_index: int | None) -> _GlState:
     gl.glPixelStorei(gl.GL_PACK_ALIGNMENT, 1)
     gl.glPixelStorei(gl.GL_UNPACK_ALIGNMENT, 1)
     gl.glActiveTexture(gl.GL_TEXTURE0)
-    max_size = min(int(gl.glGetIntegerv(gl.GL_MAX_RENDERBUFFER_SIZE)), *[int(v) for v in gl.glGetIntegerv(gl.GL_MAX_VIEWPORT_DIMS)])
+    viewport = [int(v) for v in gl.glGetIntegerv(gl.GL_MAX_VIEWPORT_DIMS)]
+    max_size = min(int(gl.glGetIntegerv(gl.GL_MAX_RENDERBUFFER_SIZE)), *viewport)
     return _GlState(context, programs, uniforms, max_size)
 
 
@@ -310,7 +313,8 @@ def _upload_mesh(arrays: MeshArrays) -> _GpuMesh:
         texture = gl.glGenTextures(1)
         gl.glBindTexture(gl.GL_TEXTURE_2D, texture)
         tex = np.ascontiguousarray(arrays.texture[::-1])  # GL rows start at v = 0, the image's bottom row
-        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGBA8, tex.shape[1], tex.shape[0], 0, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, tex)
+        h, w = tex.shape[:2]
+        gl.glTexImage2D(gl.GL_TEXTURE_2D, 0, gl.GL_RGBA8, w, h, 0, gl.GL_RGBA, gl.GL_UNSIGNED_BYTE, tex)
         gl.glGenerateMipmap(gl.GL_TEXTURE_2D)
         gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MIN_FILTER, gl.GL_LINEAR_MIPMAP_LINEAR)
         gl.glTexParameteri(gl.GL_TEXTURE_2D, gl.GL_TEXTURE_MAG_FILTER, gl.GL_LINEAR)
@@ -350,8 +354,9 @@ class PyrenderRenderer:
         models_dir: a BOP ``models/`` folder (``obj_XXXXXX.ply`` in mm, read with
             :func:`cosy_lite.bop.io.load_model`); used for ids not in ``meshes``.
         znear, zfar: clipping distances (m); surfaces outside are not drawn.
-        max_in_flight: most crops drawn before their read-back (one framebuffer each); larger
-            batches are drawn and read back in groups of this size.
+        max_in_flight: most crops drawn before their read-back (one framebuffer each, kept per
+            resolution; also at most :data:`MAX_IN_FLIGHT_PIXELS` pixels, 48 MiB); larger batches
+            are drawn and read back in groups.
         cull_back_faces: draw front faces only (about 2x faster on llvmpipe, where the 16k-face
             meshes make rendering geometry-bound). None (default): decided per mesh on upload, by
             rendering it from 14 directions with and without culling and culling only if the depth
@@ -446,7 +451,7 @@ class PyrenderRenderer:
                 items = [meshes[obj_id] if TCO[i, 2, 3] > 0 else None for i, obj_id in enumerate(ids)]
                 if max(H, W) > gls.max_size:
                     raise ValueError(f"resolution {(H, W)} exceeds this GL's largest framebuffer side {gls.max_size}")
-                group = max(1, self.max_in_flight)
+                group = max(1, min(self.max_in_flight, MAX_IN_FLIGHT_PIXELS // (H * W)))
                 for i0 in range(0, B, group):
                     sl = slice(i0, min(B, i0 + group))
                     _render_pass(
@@ -462,7 +467,8 @@ class PyrenderRenderer:
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution,
         device: Any = "cpu", depth_only: bool = False,
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """:meth:`render` as tensors on ``device``: rgb float [B,3,H,W] in [0, 1] (None if depth_only), depth [B,1,H,W] (m)."""
+        """:meth:`render` as tensors on ``device``: rgb float [B,3,H,W] in [0, 1] (None if
+        depth_only), depth [B,1,H,W] (m)."""
         return self.render(obj_ids, TCO, K, resolution, depth_only).to_tensors(device)
 
     def _current_gl_state(self) -> _GlState:
@@ -502,16 +508,14 @@ class PyrenderRenderer:
         dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
         up = np.where(np.abs(dirs[:, 2:3]) > 0.9, [[0.0, 1.0, 0.0]], [[0.0, 0.0, 1.0]])
         TCO = np.stack([look_at(centre + 3.0 * radius * d, centre, u) for d, u in zip(dirs, up)])
-        size = CULL_CHECK_SIZE
+        n, size = len(TCO), CULL_CHECK_SIZE
         K = np.array([[2.7 * size / 2, 0, size / 2], [0, 2.7 * size / 2, size / 2], [0, 0, 1]])
-        MVP = (projection_matrices(np.broadcast_to(K, (len(TCO), 3, 3)), (size, size), self.znear, self.zfar) @ TCO)
-        depths = []
-        for cull in (False, True):
-            depth = np.empty((len(TCO), size, size), dtype=np.float32)
-            fb = self._framebuffers(gls, (size, size), len(TCO))
-            _render_pass(gls, fb, [mesh] * len(TCO), MVP.astype(np.float32), np.ascontiguousarray(TCO[:, 2], dtype=np.float32),
-                         [cull] * len(TCO), (size, size), None, depth)
-            depths.append(depth)
+        MVP = projection_matrices(np.broadcast_to(K, (n, 3, 3)), (size, size), self.znear, self.zfar) @ TCO
+        MVP, z_rows = MVP.astype(np.float32), np.ascontiguousarray(TCO[:, 2], dtype=np.float32)
+        fbs = self._framebuffers(gls, (size, size), n)
+        depths = [np.empty((n, size, size), dtype=np.float32) for _ in range(2)]
+        for cull, depth in zip((False, True), depths):
+            _render_pass(gls, fbs, [mesh] * n, MVP, z_rows, [cull] * n, (size, size), None, depth)
         changed = np.count_nonzero(depths[0] != depths[1])
         return changed <= 0.001 * np.count_nonzero(depths[0])
 
