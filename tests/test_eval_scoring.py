@@ -301,3 +301,12 @@ def test_auc_matching_ignores_errors_of_10_cm_and_more():
     # would push the second estimate onto GT 1 at 50 cm: AUC 0.)
     s = score_targets([_target(1, [[0.15, 0.2], [0.01, 0.5]], [True, True])], DIAM, 640)
     assert s.auc_add_s == pytest.approx(0.45) and s.auc_adi == pytest.approx(0.45)
+
+
+def test_dataset_missing_from_the_table(tmp_path: Path):
+    # No parameter-table entry: split "test", image width from the depth image, delta 15 mm.
+    pytest.importorskip("pyrender")
+    root = write_tiny_bop(tmp_path, name="mytiny")
+    r = _evaluate(root, _gt_estimates())
+    assert (r.dataset, r.split, r.im_width, r.vsd_delta) == ("mytiny", "test", 640, 0.015)
+    assert r.scores.ar == 1.0

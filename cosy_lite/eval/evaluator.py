@@ -171,9 +171,10 @@ def evaluate(
             if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
                 raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
                                      "GT info (visib_fract) needed for every GT instance")
-            size = sp.im_size if sp is not None else _image_size(ds, rec)
+            load_depth = _depth_loader(ds, rec)
+            size = sp.im_size if sp is not None else load_depth().shape[::-1]  # (width, height)
             im_width = im_width or size[0]
-            image = ImageErrors(renderer(*size), lambda rec=rec: ds.load_depth(rec), rec.camera.K, delta)
+            image = ImageErrors(renderer(*size), load_depth, rec.camera.K, delta)
             for t in im_targets:
                 ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
                 gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
@@ -192,7 +193,13 @@ def evaluate(
                       out, time.perf_counter() - t0)
 
 
-def _image_size(ds: BopDataset, rec) -> tuple[int, int]:
-    """(width, height) of a test image without a parameter-table entry: from its depth image."""
-    h, w = ds.load_depth(rec).shape
-    return w, h
+def _depth_loader(ds: BopDataset, rec):
+    """A function returning the test depth [H,W] (m) of ``rec``, read from disk on the first call only."""
+    cache: list[np.ndarray] = []
+
+    def load() -> np.ndarray:
+        if not cache:
+            cache.append(ds.load_depth(rec))
+        return cache[0]
+
+    return load

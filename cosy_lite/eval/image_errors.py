@@ -17,6 +17,7 @@ compared with every GT instance of that object, as bop_toolkit ``eval_calc_error
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -69,13 +70,15 @@ class ImageErrors:
     """Computes :class:`PairErrors` for the targets of one image; renders lazily, each pose once.
 
     Args:
-        renderer: depth renderer of the image size; depth_m: loads the test depth [H,W] (m) when first needed;
-        K: [3,3]; delta: VSD visibility tolerance (m).
+        renderer: depth renderer of the image size.
+        load_depth: ``() -> [H,W]`` test depth (m, 0 = no measurement); called when VSD first needs it.
+        K: [3,3] intrinsics; delta: VSD visibility tolerance (m).
     """
 
-    def __init__(self, renderer: WindowDepthRenderer, depth_m, K: np.ndarray, delta: float):
+    def __init__(self, renderer: WindowDepthRenderer, load_depth: Callable[[], np.ndarray], K: np.ndarray,
+                 delta: float):
         self.renderer = renderer
-        self._load_depth = depth_m
+        self._load_depth = load_depth
         self._depth: np.ndarray | None = None
         self.K = np.asarray(K, dtype=np.float64)
         self.delta = float(delta)
