@@ -11,7 +11,7 @@ import trimesh
 from cosy_lite.inference.icp import IcpConfig, IcpResult, refine_pose_icp, refine_poses_icp, rotation_angle_deg
 from cosy_lite.render.renderer import PyrenderRenderer
 
-MUSTARD, DRILL, PLANE, OCCLUDER = 5, 15, 90, 91  # YCB-V mustard bottle and power drill: no symmetry
+MUSTARD, DRILL, PLANE, OCCLUDER, CAN = 5, 15, 90, 91, 92  # YCB-V mustard bottle and power drill: no symmetry
 K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])  # YCB-V camera
 SIZE = (480, 640)
 NOISE = 0.001  # m, Gaussian depth noise
@@ -30,7 +30,9 @@ def _rodrigues(v) -> np.ndarray:
 GT = {
     MUSTARD: _T(_rodrigues([0.6, -0.9, 0.4]), [0.06, -0.03, 0.80]),
     DRILL: _T(_rodrigues([-1.2, 0.3, 0.5]), [-0.12, 0.05, 0.90]),
+    CAN: _T(_rodrigues([1.1, 0.2, 0.3]), [0.02, 0.04, 0.85]),  # a closed cylinder, axis z
 }
+CAN_SYMMETRIES = np.stack([_T(_rodrigues([0.0, 0.0, a]), [0.0, 0.0, 0.0]) for a in np.radians(np.arange(0, 360, 0.5))])
 T_PLANE = _T(np.eye(3), [0.0, 0.0, 1.00])  # a wall behind both objects: the mask decides what is the object
 T_OCCLUDER = _T(np.eye(3), [0.06, 0.03, 0.65])  # a box in front of the lower part of the mustard bottle
 
@@ -42,6 +44,7 @@ def renderer():
     meshes = {
         MUSTARD: load_ycb_mesh(MUSTARD), DRILL: load_ycb_mesh(DRILL),
         PLANE: trimesh.creation.box(extents=(3.0, 3.0, 0.01)), OCCLUDER: trimesh.creation.box(extents=(0.2, 0.05, 0.05)),
+        CAN: trimesh.creation.cylinder(radius=0.04, height=0.12, sections=64),
     }
     with PyrenderRenderer(meshes=meshes) as r:
         yield r
@@ -126,6 +129,20 @@ def test_two_objects_one_render_call(renderer):
         e_t, e_r = _errors(res.TCO, GT[obj_id])
         print(f"obj {obj_id}: {e_t:.3f} mm, {e_r:.3f} deg, {res.seconds * 1000:.1f} ms")
         assert res.accepted and e_t < 2.0 and e_r < 1.0 and res.seconds > 0
+
+
+def test_symmetric_object(renderer):
+    """A cylinder: the turn about its axis is free; given the symmetries, the pose closest to the start is returned."""
+    depth, masks = _scene(renderer, [CAN])
+    start = _perturbed(GT[CAN], 5.0, 0.01, 7)
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, CAN, symmetries=CAN_SYMMETRIES)
+    axis_err = np.degrees(np.arccos(np.clip(res.TCO[:3, 2] @ GT[CAN][:3, 2], -1.0, 1.0)))
+    e_t = np.linalg.norm(res.TCO[:3, 3] - GT[CAN][:3, 3]) * 1000
+    print(f"cylinder: {e_t:.3f} mm, axis {axis_err:.3f} deg, update {res.delta_rotation_deg:.2f} deg")
+    assert res.accepted and e_t < 2.0 and axis_err < 1.0
+    assert res.delta_rotation_deg <= 5.0 + 1.0  # the turn about the axis is not counted
+    with pytest.raises(ValueError, match="symmetries must hold one"):
+        refine_poses_icp(start[None], K, depth, masks, renderer, [CAN], symmetries=[])
 
 
 def test_rejects_without_data(renderer):

@@ -202,6 +202,7 @@ def _check_inputs(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, masks: np.n
 def refine_poses_icp(
     TCO: np.ndarray, K: np.ndarray, depth_measured: np.ndarray, masks: np.ndarray,
     renderer: MeshRenderer, obj_ids: Sequence[int], cfg: IcpConfig | None = None,
+    symmetries: Sequence[np.ndarray | None] | None = None,
 ) -> list[IcpResult]:
     """Refine the N object poses of one image against its measured depth.
 
@@ -210,7 +211,12 @@ def refine_poses_icp(
         depth_measured: [H,W] camera z (m), 0 or non-finite = unknown;
         masks: [N,H,W] bool, each object's (visible / detection) mask in the full image;
         renderer: renders the models (``render(..., depth_only=True)`` and ``mesh(obj_id)``);
-        obj_ids: [N]; cfg: :class:`IcpConfig` (defaults if None).
+        obj_ids: [N]; cfg: :class:`IcpConfig` (defaults if None);
+        symmetries: optional, per object its symmetry set [S,4,4] (model frame, m, e.g.
+            :func:`cosy_lite.geometry.symmetries.symmetry_transforms`) or None: the refined pose is
+            replaced by its symmetric equivalent closest in rotation to the input, so a free turn
+            about a symmetry axis (common: point-to-plane cannot see it) is neither reported nor
+            counted against ``max_rotation_deg``.
     Returns: one :class:`IcpResult` per object, in order. All windows are rendered in one call.
     Raises ValueError for wrong shapes or a non-finite TCO / K (naming the argument and index).
     """
@@ -222,6 +228,8 @@ def refine_poses_icp(
     obj_ids = [int(i) for i in obj_ids]
     _check_inputs(TCO, K, depth, masks, obj_ids)
     N = len(obj_ids)
+    if symmetries is not None and len(symmetries) != N:
+        raise ValueError(f"symmetries must hold one [S,4,4] array (or None) per object: {len(symmetries)} for {N} objects")
     H, W = depth.shape
     t_start = time.perf_counter()
     results: list[IcpResult | None] = [None] * N
@@ -246,7 +254,8 @@ def refine_poses_icp(
         rendered = renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
         render_share = (time.perf_counter() - t_start) / len(todo)
     for j, i in enumerate(todo):
-        results[i] = _refine_one(TCO[i], K, depth, masks[i], rendered[j], windows[i], cfg)
+        syms = None if symmetries is None or symmetries[i] is None else np.asarray(symmetries[i], dtype=np.float64)
+        results[i] = _refine_one(TCO[i], K, depth, masks[i], rendered[j], windows[i], cfg, syms)
         results[i].timings["render"] = render_share
         results[i].seconds = sum(results[i].timings.values())
     return results  # type: ignore[return-value]
@@ -254,18 +263,18 @@ def refine_poses_icp(
 
 def refine_pose_icp(
     TCO: np.ndarray, K: np.ndarray, depth_measured: np.ndarray, mask: np.ndarray,
-    renderer: MeshRenderer, obj_id: int, cfg: IcpConfig | None = None,
+    renderer: MeshRenderer, obj_id: int, cfg: IcpConfig | None = None, symmetries: np.ndarray | None = None,
 ) -> IcpResult:
-    """Refine one pose: TCO [4,4] (m), K [3,3], depth_measured [H,W] (m, 0 = unknown), mask [H,W] bool.
-
-    See :func:`refine_poses_icp`; returns the refined pose, or the input pose with the reason.
-    """
-    return refine_poses_icp(np.asarray(TCO)[None], K, depth_measured, np.asarray(mask)[None], renderer, [obj_id], cfg)[0]
+    """Refine one pose: TCO [4,4] (m), K [3,3], depth_measured [H,W] (m, 0 = unknown), mask [H,W] bool,
+    optional symmetry set [S,4,4]. See :func:`refine_poses_icp`; returns the refined pose, or the
+    input pose with the reason."""
+    masks = np.asarray(mask)[None]
+    return refine_poses_icp(np.asarray(TCO)[None], K, depth_measured, masks, renderer, [obj_id], cfg, [symmetries])[0]
 
 
 def _refine_one(
     TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, mask: np.ndarray, rendered: np.ndarray,
-    window: tuple[int, int, int, int], cfg: IcpConfig,
+    window: tuple[int, int, int, int], cfg: IcpConfig, symmetries: np.ndarray | None,
 ) -> IcpResult:
     """ICP of one object whose model depth ``rendered`` [h', w'] (>= window) starts at the window's corner."""
     import open3d as o3d
@@ -299,10 +308,14 @@ def _refine_one(
         if both.sum() >= cfg.min_points:
             dz = float(np.median(d_meas[both] - d_model[both]))
             T_init[:3, 3] = TCO[:3, 3] * dz / TCO[2, 3]  # along the ray through the object origin
+    # Clouds in the object-centred camera frame (origin at the object origin c): ICP's rotations turn
+    # about the object, so a turn about a symmetry axis (free for point-to-plane) is not coupled
+    # to a translation that the small-angle solve would get wrong for large angles.
+    c = TCO[:3, 3]
     rows, cols = np.nonzero(tgt_px)
-    target = _cloud(backproject(s * rows + y0, s * cols + x0, d_meas[rows, cols], K), cfg.voxel_size)
+    target = _cloud(backproject(s * rows + y0, s * cols + x0, d_meas[rows, cols], K) - c, cfg.voxel_size)
     rows, cols = np.nonzero(src_px)
-    source = _cloud(backproject(s * rows + y0, s * cols + x0, d_model[rows, cols], K), cfg.voxel_size)
+    source = _cloud(backproject(s * rows + y0, s * cols + x0, d_model[rows, cols], K) - c, cfg.voxel_size)
     n_tgt, n_src = len(target.points), len(source.points)
     timings["clouds"] = time.perf_counter() - t0
     if min(n_tgt, n_src) < cfg.min_points:
@@ -311,7 +324,7 @@ def _refine_one(
     target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius, max_nn=cfg.normal_max_nn))
     target.orient_normals_towards_camera_location(np.zeros(3))
     timings["normals"] = time.perf_counter() - t0 - timings["clouds"]
-    T = T_init
+    T = T_init  # a translation: the same in both frames
     result = None
     for dist, iters in zip(cfg.max_correspondence_distances, cfg.iterations):
         kernel = robust_kernel(cfg.robust_kernel, dist if cfg.robust_k is None else cfg.robust_k)
@@ -319,14 +332,19 @@ def _refine_one(
             source, target, dist, T, reg.TransformationEstimationPointToPlane(kernel),
             reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(iters)),
         )
-        T = np.asarray(result.transformation)
+        T = np.array(result.transformation)
     timings["icp"] = time.perf_counter() - t0 - timings["clouds"] - timings["normals"]
     stats = dict(n_points=n_tgt, n_model_points=n_src, fitness=float(result.fitness),
                  inlier_rmse=float(result.inlier_rmse), timings=timings)
     if not np.isfinite(T).all():
         return IcpResult(TCO.copy(), False, "ICP update is not finite", **stats)
+    T[:3, 3] += c - T[:3, :3] @ c  # camera frame: C T C^-1, C = translation by c
     TCO_new = T @ TCO
-    d_rot = rotation_angle_deg(T[:3, :3])
+    if symmetries is not None:  # the symmetric equivalent closest in rotation to the input pose
+        candidates = TCO_new @ symmetries
+        cos = np.einsum("sij,ij->s", candidates[:, :3, :3], TCO[:3, :3])  # trace(R_s^T R) = 1 + 2 cos(angle)
+        TCO_new = candidates[int(np.argmax(cos))]
+    d_rot = rotation_angle_deg(TCO_new[:3, :3] @ TCO[:3, :3].T)
     d_trans = float(np.linalg.norm(TCO_new[:3, 3] - TCO[:3, 3]))
     stats.update(delta_rotation_deg=d_rot, delta_translation=d_trans)
     checks = [
