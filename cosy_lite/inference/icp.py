@@ -58,8 +58,8 @@ class IcpConfig:
     robust_kernel: str = "tukey"  # key of ROBUST_KERNELS
     robust_k: float | None = None  # kernel scale (m); None: each stage's correspondence distance
     voxel_size: float = 0.004  # m, voxel grid of both clouds
-    normal_radius: float = 0.012  # m, target normals: hybrid search radius ...
-    normal_max_nn: int = 30  # ... and most neighbours
+    normal_radius: float = 0.010  # m, target normals: hybrid search radius ...
+    normal_max_nn: int = 20  # ... and most neighbours
     min_points: int = 50  # fewest points in either downsampled cloud
     window_margin: int = 16  # px around the projected model box and the mask box
     occlusion_margin: float = 0.02  # m, rendered pixel outside the mask, measured this much in front: hidden
