@@ -14,8 +14,10 @@ Per object (all objects of an image share one batched render call):
    side at the object's depth, so near objects cost no more than far ones); optionally the source
    is first moved along the object's viewing ray by the median depth difference (robust depth
    pre-alignment); then point-to-plane ICP with a robust kernel over a coarse -> fine schedule
-   of correspondence distances;
-5. the camera-frame update ``T`` (source -> target) gives ``TCO_new = T @ TCO``; the result is
+   of correspondence distances, in the camera frame moved to the object origin (turns about the
+   object stay turns about the object);
+5. the camera-frame update ``T`` (source -> target) gives ``TCO_new = T @ TCO`` (with a symmetry
+   set given, its symmetric equivalent closest in rotation to the start); the result is
    rejected (input pose returned, ``accepted=False`` and a reason) when either cloud is too small,
    the update is not finite, rotates or moves the object more than the limits, or the final
    fitness / inlier RMSE fail their limits.
