@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,6 +165,7 @@ def evaluate(
 
     out: list[TargetErrors] = []
     n_eval = 0
+    pool = ThreadPoolExecutor(1)  # MSSD/MSPD/ADD/ADI beside the VSD rendering (see ImageErrors.target)
     try:
         bar = tqdm(sorted(by_image.items()), desc="eval", unit="im", disable=not progress)
         for (scene_id, im_id), im_targets in bar:
@@ -174,7 +176,7 @@ def evaluate(
             load_depth = _depth_loader(ds, rec)
             size = sp.im_size if sp is not None else load_depth().shape[::-1]  # (width, height)
             im_width = im_width or size[0]
-            image = ImageErrors(renderer(*size), load_depth, rec.camera.K, delta)
+            image = ImageErrors(renderer(*size), load_depth, rec.camera.K, delta, pool)
             for t in im_targets:
                 ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
                 gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
@@ -186,6 +188,7 @@ def evaluate(
                 n_eval += len(ests)
             bar.set_postfix(estimates=n_eval, refresh=False)
     finally:
+        pool.shutdown()
         for r in renderers.values():
             r.close()
     scores = score_targets(out, {o: d.diameter for o, d in objs.items()}, im_width, symmetric)

@@ -16,6 +16,7 @@ compared with every GT instance of that object, as bop_toolkit ``eval_calc_error
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -57,6 +58,17 @@ def distance_map(depth: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray
     return np.sqrt((xs[None, :] * d) ** 2 + (ys[:, None] * d) ** 2 + d**2)
 
 
+def _model_errors(obj: ObjectErrors, T_est: np.ndarray, gt_TCO: list[np.ndarray], K: np.ndarray,
+                  out: PairErrors) -> None:
+    """Fill ``out.mssd``, ``mspd``, ``add``, ``adi`` (in place) of estimates ``T_est`` [E,4,4] x ``gt_TCO`` (G)."""
+    for g, T_gt in enumerate(gt_TCO):
+        near = np.linalg.norm(T_est[:, :3, 3] - T_gt[:3, 3], axis=1) < obj.diameter  # bounding spheres overlap
+        out.mssd[:, g], out.mspd[:, g] = obj.mssd_mspd(T_est, T_gt, K)
+        out.mssd[~near, g] = np.inf
+        out.add[:, g] = obj.add(T_est, T_gt)
+        out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
+
+
 def _paste(dist: np.ndarray, src: Window, dst: Window) -> np.ndarray:
     """``dist`` of window ``src`` placed in a zero map of window ``dst`` (which contains ``src``)."""
     out = np.zeros(dst.shape)
@@ -73,11 +85,13 @@ class ImageErrors:
         renderer: depth renderer of the image size.
         load_depth: ``() -> [H,W]`` test depth (m, 0 = no measurement); called when VSD first needs it.
         K: [3,3] intrinsics; delta: VSD visibility tolerance (m).
+        executor: where the errors that need no rendering run (e.g. a one-thread pool), or None.
     """
 
     def __init__(self, renderer: WindowDepthRenderer, load_depth: Callable[[], np.ndarray], K: np.ndarray,
-                 delta: float):
+                 delta: float, executor: Executor | None = None):
         self.renderer = renderer
+        self.executor = executor
         self._load_depth = load_depth
         self._depth: np.ndarray | None = None
         self.K = np.asarray(K, dtype=np.float64)
@@ -99,22 +113,26 @@ class ImageErrors:
 
     def target(self, obj_id: int, obj: ObjectErrors, ests: list[PoseEstimate], gt_TCO: list[np.ndarray],
                gt_keys: list[int]) -> PairErrors:
-        """Errors of ``ests`` (E, evaluated order) against GT poses ``gt_TCO`` (G; ``gt_keys``: their GT indices)."""
+        """Errors of ``ests`` (E, evaluated order) against GT poses ``gt_TCO`` (G; ``gt_keys``: their GT indices).
+
+        MSSD, MSPD, ADD and ADI run on ``executor`` (if given) while VSD renders here: the k-d tree
+        and large numpy products release the GIL, so the two overlap on a second core.
+        """
         E, G = len(ests), len(gt_TCO)
         out = PairErrors.missing(E, G)
         if E == 0 or G == 0:
             return out
         T_est = np.stack([e.TCO for e in ests])
+        job = self.executor.submit(_model_errors, obj, T_est, gt_TCO, self.K, out) if self.executor else None
+        if job is None:
+            _model_errors(obj, T_est, gt_TCO, self.K, out)
         radius = 0.5 * obj.diameter
         for g, (T_gt, gkey) in enumerate(zip(gt_TCO, gt_keys)):
-            near = np.linalg.norm(T_est[:, :3, 3] - T_gt[:3, 3], axis=1) < obj.diameter  # bounding spheres overlap
-            out.mssd[:, g], out.mspd[:, g] = obj.mssd_mspd(T_est, T_gt, self.K)
-            out.mssd[~near, g] = np.inf
-            out.add[:, g] = obj.add(T_est, T_gt)
-            out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
             for e in range(E):
                 if pose_errors.sphere_projections_overlap(radius, T_est[e, :3, 3], T_gt[:3, 3]):
                     out.vsd[e, g] = self._vsd(obj_id, obj, ("est", obj_id, e), T_est[e], ("gt", gkey), T_gt)
+        if job is not None:
+            job.result()
         return out
 
     def _vsd(self, obj_id: int, obj: ObjectErrors, key_e, T_e, key_g, T_g) -> np.ndarray:
