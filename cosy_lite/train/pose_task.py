@@ -121,16 +121,6 @@ def pose_errors(TCO: Tensor, TCO_gt: Tensor, points: Tensor, symmetries: Tensor,
     return PoseErrors(rot.float(), trans.float(), adds.float(), mssd.float())
 
 
-def split_by_image(full, n_val_images: int, seed: int):
-    """(train, val) subsets of a PoseDataset by image: ``n_val_images`` seeded images held out."""
-    keys = sorted(full.image_keys())
-    if n_val_images >= len(keys):
-        raise ValueError(f"val_images={n_val_images} leaves no training image (the split has {len(keys)})")
-    g = torch.Generator().manual_seed(seed + 777)
-    val = {keys[i] for i in torch.randperm(len(keys), generator=g)[:n_val_images].tolist()}
-    return full.select_images(set(keys) - val), full.select_images(val)
-
-
 class PoseTask:
     """:class:`~cosy_lite.train.loop.TrainTask` of the coarse and refiner networks."""
 
@@ -149,11 +139,12 @@ class PoseTask:
 
     # ------------------------------------------------------------------ data
     def _split(self):
+        from cosy_lite.data.instances import split_train_val
         from cosy_lite.data.pose_dataset import PoseDataset
 
         full = PoseDataset(self.dataset, self.cfg.data.split, obj_ids=self.objects.obj_ids,
                            min_visib_fract=self.cfg.data.min_visib_fract)
-        return split_by_image(full, self.cfg.data.val_images, seed=self.cfg.loop.seed)
+        return split_train_val(full, n_val_images=self.cfg.data.val_images, seed=self.cfg.loop.seed)
 
     @property
     def renderer(self):
