@@ -310,3 +310,11 @@ def test_dataset_missing_from_the_table(tmp_path: Path):
     r = _evaluate(root, _gt_estimates())
     assert (r.dataset, r.split, r.im_width, r.vsd_delta) == ("mytiny", "test", 640, 0.015)
     assert r.scores.ar == 1.0
+
+
+def test_estimates_outside_the_targets_are_ignored(root: Path):
+    # The toolkit only visits targets: an estimate of an image (or object) without a target is not evaluated.
+    ests = _gt_estimates()
+    stray = PoseEstimate(0, 7, 1, 1.0, ests[0].TCO.copy(), 0.1)
+    r = _evaluate(root, ests + [stray])
+    assert r.n_estimates_in_file == 6 and r.n_estimates_evaluated == 5 and r.scores.ar == 1.0
