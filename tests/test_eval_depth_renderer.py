@@ -71,9 +71,11 @@ def test_object_windows():
     assert EMPTY_WINDOW.union(Window(1, 1, 2, 2)) == Window(1, 1, 2, 2)
 
 
-def test_unknown_object_raises(renderer):
+def test_bad_requests_raise(renderer):
     with pytest.raises(KeyError, match="obj_id 9"):
         renderer.render(9, _pose([0.0, 0.0, 0.5]), K, Window(0, 0, 4, 4))
+    with pytest.raises(ValueError, match="not inside"):
+        renderer.render(3, _pose([0.0, 0.0, 0.5]), K, Window(600, 0, 700, 4))
 
 
 def test_closing_a_renderer_keeps_the_others_working(renderer):

@@ -131,7 +131,7 @@ class WindowDepthRenderer:
         self._platform.make_current()
         self._fbo = None
         self._gl_objects: dict[int, tuple[int, int, int, int]] = {}  # obj_id -> vao, vbo, ebo, n_indices
-        self._zbounds: dict[int, np.ndarray] = {}  # obj_id -> [8,3] bounding box corners (m)
+        self._corners: dict[int, np.ndarray] = {}  # obj_id -> [8,3] bounding box corners (m)
         try:
             self._setup()
             for obj_id, (vertices, faces) in meshes.items():
@@ -197,7 +197,7 @@ class WindowDepthRenderer:
         self._gl_objects[obj_id] = (vao, vbo, ebo, f.size)
         lo, hi = v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64)
         corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
-        self._zbounds[obj_id] = corners
+        self._corners[obj_id] = corners
 
     # ------------------------------------------------------------------ rendering
     def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
@@ -213,8 +213,10 @@ class WindowDepthRenderer:
         h, w = window.shape
         if h == 0 or w == 0:
             return np.zeros((h, w), np.float32)
+        if window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height:
+            raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
         TCO = np.asarray(TCO, dtype=np.float64)
-        z = (self._zbounds[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
+        z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
         if z.max() <= NEAR_MIN_M:
             return np.zeros((h, w), np.float32)
         # Clipping planes around the object's bounding box (as the toolkit), with room to spare.
