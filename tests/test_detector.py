@@ -18,7 +18,7 @@ H, W = 120, 160
 OBJ_IDS = (1, 2, 5)
 COLOURS = {1: (1.0, 0.0, 0.0), 2: (0.0, 1.0, 0.0), 5: (0.0, 0.0, 1.0)}
 # Small, fast settings: 120x160 images kept at their size, few proposals, narrow FPN.
-SMALL = dict(fpn_channels=64, min_size=H, max_size=W, rpn_pre_nms_top_n_train=200, rpn_post_nms_top_n_train=100,
+SMALL = dict(name="maskrcnn_resnet18_fpn", fpn_channels=64, mask_head_channels=64, box_head_size=256, min_size=H, max_size=W, rpn_pre_nms_top_n_train=200, rpn_post_nms_top_n_train=100,
              rpn_pre_nms_top_n_test=50, rpn_post_nms_top_n_test=20, box_batch_size_per_image=64)
 
 
@@ -60,8 +60,9 @@ def test_builders_use_trainable_norm_and_know_their_names():
         assert not any(isinstance(m, FrozenBatchNorm2d) for m in net.modules()), name
         assert all(p.requires_grad for p in net.parameters()), name
         assert net.roi_heads.box_predictor.cls_score.out_features == 4
-    group = Detector(LabelMap(OBJ_IDS), DetectorConfig(norm="group", fpn_channels=32)).net
+    group = Detector(LabelMap(OBJ_IDS), DetectorConfig(name="maskrcnn_resnet18_fpn", norm="group", fpn_channels=32)).net
     assert any(isinstance(m, torch.nn.GroupNorm) for m in group.modules())
+    assert net.roi_heads.mask_head[0][0].out_channels == 256  # last net: torchvision's default widths
     with pytest.raises(ValueError, match="maskrcnn_resnet18_fpn"):
         Detector(LabelMap(OBJ_IDS), DetectorConfig(name="yolo"))
 
