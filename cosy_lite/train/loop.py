@@ -154,6 +154,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     if dist_info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
 
+    torch.set_flush_denormal(True)  # CPU: denormal floats (tiny Adam moments, activations) are very slow
     torch.manual_seed(loop.seed)  # the initial weights are a function of the seed (same on every rank)
     model = task.build_model().to(device)
     optimizer, scheduler = build_optimizer(model.parameters(), optim)
