@@ -187,7 +187,8 @@ def test_mssd_mspd_equal_the_toolkit_loops_with_continuous_symmetry():
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     gt = _pose(R * np.linalg.det(R), (0.02, -0.03, 0.7))  # proper rotation
     est = gt @ syms[7] @ _pose(t=(0.002, -0.001, 0.003))
-    loop3 = min(np.linalg.norm(pe.transform_points(est, pts) - pe.transform_points(gt @ S, pts), axis=1).max() for S in syms)
+    loop3 = min(np.linalg.norm(pe.transform_points(est, pts) - pe.transform_points(gt @ S, pts), axis=1).max()
+                for S in syms)
     loop2 = min(np.linalg.norm(pe.project_points(pe.transform_points(est, pts), K)
                                - pe.project_points(pe.transform_points(gt @ S, pts), K), axis=1).max() for S in syms)
     m3, m2 = pe.mssd_mspd(est[None], gt, K, pts, syms)
