@@ -1,0 +1,203 @@
+"""Run a :class:`~cosy_lite.inference.predictor.Predictor` over a BOP test split and write the
+BOP19 submission ``METHOD_DATASET-SPLIT.csv`` (ViVo task), overlays, and the checker's verdict.
+
+Per target image of ``test_targets_bop19.json``: read the image (and depth when ICP is on) ->
+detections (the detector, the ground truth ("oracle"), or a BOP22 detections JSON file) -> per
+object its ``inst_count`` best detections (:func:`~cosy_lite.inference.vivo.select_top_instances`)
+-> poses -> one CSV row per valid estimate, ranked by score. ``time`` is the wall time of the image
+from detection to the last pose (file reading excluded), plus the file's own detection time for
+a detections JSON (BOP: detection time counts); oracle detections cost nothing. Invalid poses
+(NaN, not a rotation, behind the camera) are never written: they are counted and reported.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from cosy_lite.bop.dataset import BopDataset, ImageRecord
+from cosy_lite.bop.detections import Detections, oracle_detections, read_detections_json
+from cosy_lite.bop.results import PoseEstimate, results_filename, write_results_csv
+from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
+from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, SetupError
+from cosy_lite.inference.vivo import select_top_instances, targets_by_image
+
+ORACLE = "oracle"
+ORACLE_MIN_VISIB_FRACT = 0.1  # as the BOP19 targets: instances at least 10 % visible
+DetectionSource = Callable[[ImageRecord], Detections]
+
+
+def _oracle_source(dataset: BopDataset, with_masks: bool) -> DetectionSource:
+    def source(rec: ImageRecord) -> Detections:
+        det = oracle_detections(dataset, rec, with_masks=with_masks, min_visib_fract=ORACLE_MIN_VISIB_FRACT)
+        det.time_s = 0.0
+        return det
+
+    return source
+
+
+def _json_source(path: Path, dataset: BopDataset, with_masks: bool) -> DetectionSource:
+    per_image = read_detections_json(path, valid_obj_ids=dataset.obj_ids, with_masks=with_masks)
+
+    def source(rec: ImageRecord) -> Detections:
+        det = per_image.get((rec.scene_id, rec.im_id))
+        return det if det is not None else Detections.empty()
+
+    return source
+
+
+# name -> builder(dataset, with_masks); anything else is a detections JSON file
+DETECTION_SOURCES: dict[str, Callable[[BopDataset, bool], DetectionSource]] = {ORACLE: _oracle_source}
+
+
+def detection_source(spec: str | Path | None, dataset: BopDataset, with_masks: bool) -> DetectionSource | None:
+    """Detections per image from ``spec``: None (the predictor's detector: returns None), a key of
+    :data:`DETECTION_SOURCES` ("oracle"), or a BOP22 detections JSON file."""
+    if spec is None:
+        return None
+    if str(spec) in DETECTION_SOURCES:
+        return DETECTION_SOURCES[str(spec)](dataset, with_masks)
+    path = Path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: detections file not found (--detections takes 'oracle' or a BOP22 JSON file)")
+    return _json_source(path, dataset, with_masks)
+
+
+@dataclass
+class RunSummary:
+    """What a run wrote and measured.
+
+    image_times: the ``time`` of each image (s); timings: seconds per stage summed over images
+    (:data:`~cosy_lite.inference.predictor.TIMING_KEYS`); n_invalid: estimates not written (invalid
+    pose); problems: the results checker's findings on the CSV.
+    """
+
+    csv_path: Path
+    n_images: int
+    n_detections: int
+    n_estimates: int
+    n_invalid: int
+    seconds: float
+    image_times: list[float] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    icp_accepted: int = 0
+    icp_runs: int = 0
+    vis_paths: list[Path] = field(default_factory=list)
+    problems: list[Problem] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not any(p.severity == "error" for p in self.problems)
+
+    def lines(self) -> list[str]:
+        n = max(1, self.n_images)
+        per = "  ".join(f"{k} {1000 * self.timings.get(k, 0.0) / n:.0f}" for k in TIMING_KEYS)
+        out = [f"{self.n_images} images, {self.n_estimates} estimates written ({self.n_detections} detections kept, "
+               f"{self.n_invalid} invalid poses dropped) in {self.seconds:.1f} s",
+               f"time per image: mean {np.mean(self.image_times or [0.0]):.3f} s; ms per image: {per}"]
+        if self.icp_runs:
+            out.append(f"ICP accepted {self.icp_accepted} of {self.icp_runs} poses")
+        if self.vis_paths:
+            out.append(f"overlays: {self.vis_paths[0].parent} ({len(self.vis_paths)} PNGs)")
+        verdict = "passes the results checker" if self.ok else "FAILS the results checker (see above)"
+        out.append(f"results: {self.csv_path} ({verdict})")
+        return out
+
+
+def _write_overlay(path: Path, rgb: np.ndarray, rec: ImageRecord, est, predictor: Predictor) -> Path:
+    import cv2
+
+    from cosy_lite.inference.overlay import draw_estimates
+
+    gt = [g for g in rec.gt if g.obj_id in set(predictor.obj_ids)]
+    image = draw_estimates(rgb, rec.camera.K, est.obj_ids.tolist(), est.TCO.numpy(), est.scores.tolist(),
+                           predictor.renderer, [g.obj_id for g in gt], np.stack([g.TCO for g in gt]) if gt else None)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"{path}: could not write the overlay PNG")
+    return path
+
+
+def check_coverage(predictor: Predictor, targets_path: Path, target_obj_ids: set[int], detector_path: Path | None) -> None:
+    """SetupError naming the checkpoint when the pose models (or the detector) miss target objects."""
+    models = [m for m in (predictor.coarse, predictor.refiner) if m is not None]
+    for m in models:
+        missing = sorted(target_obj_ids - set(m.obj_ids))
+        if missing:
+            raise SetupError(f"{m.describe()}: the {m.kind} checkpoint covers obj_ids {m.obj_ids}, but {targets_path} "
+                             f"asks for {sorted(target_obj_ids)} (missing {missing})")
+    missing = sorted(target_obj_ids - set(predictor.obj_ids))
+    if missing:
+        raise SetupError(f"the predictor estimates obj_ids {predictor.obj_ids}, but {targets_path} asks for {missing} too")
+    if predictor.detector is not None and detector_path is not None:
+        det_ids = set(predictor.detector.label_map.obj_ids)
+        missing = sorted(target_obj_ids - det_ids)
+        if missing:
+            raise SetupError(f"{detector_path}: the detector knows obj_ids {sorted(det_ids)}, but {targets_path} "
+                             f"asks for {missing} too")
+
+
+def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path, split: str = "test",
+                 method: str = "cosylite", detections: str | Path | None = None, n_vis: int = 0,
+                 limit_images: int | None = None, progress: bool = True,
+                 detector_path: Path | None = None) -> RunSummary:
+    """Estimate the poses of the ViVo targets of ``split`` and write ``out_dir/METHOD_DATASET-SPLIT.csv``.
+
+    Args:
+        detections: None (the predictor's detector), "oracle", or a BOP22 detections JSON file.
+        n_vis: overlays written for the first ``n_vis`` images (``out_dir/vis/``).
+        limit_images: only the first target images.
+    """
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    csv_path = out_dir / results_filename(method, dataset.name, split)
+    split_dir = resolve_split_folder(dataset.root, split, None)
+    split_folder = split_dir.name if split_dir is not None else split
+    per_image = targets_by_image(dataset.test_targets())
+    check_coverage(predictor, dataset.test_targets_path, {o for c in per_image.values() for o in c}, detector_path)
+    keys = list(per_image)[:limit_images] if limit_images is not None else list(per_image)
+    source = detection_source(detections, dataset, with_masks=predictor.icp)
+    if source is None and predictor.detector is None:
+        raise SetupError("no detections: load a detector checkpoint or give detections ('oracle' or a JSON file)")
+    estimates: list[PoseEstimate] = []
+    summary = RunSummary(csv_path, len(keys), 0, 0, 0, 0.0, timings=dict.fromkeys(TIMING_KEYS, 0.0))
+    t_run = time.perf_counter()
+    bar = tqdm(keys, desc=f"infer {dataset.name}/{split}", unit="img", disable=not progress)
+    for k, (scene_id, im_id) in enumerate(bar):
+        rec = dataset.image(split_folder, scene_id, im_id)
+        rgb = dataset.load_rgb(rec)
+        depth = dataset.load_depth(rec) if predictor.icp and rec.depth_path is not None else None
+        given = source(rec) if source is not None else None
+        t0 = time.perf_counter()
+        det = given if given is not None else predictor.detect(rgb)
+        det = select_top_instances(det, per_image[(scene_id, im_id)])
+        est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
+        t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
+        summary.image_times.append(t_image)
+        timings = dict(est.timings, detection=0.0 if given is not None else det.time_s)
+        for key in TIMING_KEYS:
+            summary.timings[key] += timings[key] if key != "total" else t_image
+        summary.n_detections += len(det)
+        summary.n_invalid += int((~est.valid).sum())
+        if est.icp is not None:
+            summary.icp_runs += len(est.icp)
+            summary.icp_accepted += sum(r.accepted for r in est.icp)
+        good = est.only_valid()
+        for i in range(len(good)):
+            estimates.append(PoseEstimate(scene_id, im_id, int(good.obj_ids[i]), float(good.scores[i]),
+                                          good.TCO[i].numpy(), t_image))
+        if k < n_vis:
+            name = f"{csv_path.stem}_{scene_id:06d}_{im_id:06d}.png"
+            summary.vis_paths.append(_write_overlay(out_dir / "vis" / name, rgb, rec, good, predictor))
+    bar.close()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_results_csv(csv_path, estimates)
+    summary.n_estimates = len(estimates)
+    summary.seconds = time.perf_counter() - t_run
+    summary.problems = check_results(csv_path, dataset.root, dataset.name, split)
+    return summary

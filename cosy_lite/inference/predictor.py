@@ -1,0 +1,451 @@
+"""The pose-estimation pipeline for one RGB(-D) image: detector -> coarse -> refiner -> depth ICP.
+
+Per image: the image is converted to a tensor once; every detected object goes through the
+networks together (one batch per iteration, see :func:`~cosy_lite.models.render_and_compare.iterate_poses`,
+all crops of an iteration rendered in one call). Starting pose: canonical rotation and depth from
+the detection box (:func:`~cosy_lite.models.initial_pose.initial_pose_from_boxes`) -> 1 coarse
+iteration -> ``n_refiner_iterations`` refiner iterations (CosyPose: 1 + 4) -> optionally
+point-to-plane ICP against the measured depth inside each detection mask
+(:func:`~cosy_lite.inference.icp.refine_poses_icp`).
+
+Robot users: ``Predictor.from_checkpoints(coarse=..., refiner=..., models_dir=...)`` then
+``predict(rgb, K)``; no dataset needed, only the BOP ``models/`` folder of the objects (PLY in mm
++ ``models_info.json``). Poses are object-to-camera in metres.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections import defaultdict
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from cosy_lite.bop import io
+from cosy_lite.bop.detections import Detections
+from cosy_lite.inference.icp import IcpConfig, IcpResult
+from cosy_lite.inference.loaders import PoseModel, load_detector, load_pose_model
+# torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
+# has rendered crashes the process.
+from cosy_lite.models.detector import detect
+from cosy_lite.models.initial_pose import initial_pose_from_boxes
+from cosy_lite.models.render_and_compare import iterate_poses
+
+class SetupError(ValueError):
+    """A predictor that cannot be built or run as asked (missing model, objects not covered); the
+    message names the file."""
+
+
+TIMING_KEYS = ("detection", "crops", "render", "networks", "icp", "total")
+MIN_DEPTH = 0.02  # m: an estimate nearer than this (or behind the camera) is flagged invalid (BOP: t >= 20 mm)
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclass
+class PoseEstimates:
+    """Pose estimates of the objects of one image, by decreasing score.
+
+    obj_ids [N] int64; TCO [N,4,4] float64 object-to-camera (m); scores [N] float32 (the detection
+    scores); boxes [N,4] float32 detection boxes x1, y1, x2, y2 (px); valid [N] bool: finite pose,
+    rotation matrix, in front of the camera (>= :data:`MIN_DEPTH`) — invalid poses must not be
+    written; TCO_coarse [N,4,4] after the coarse model; icp: one
+    :class:`~cosy_lite.inference.icp.IcpResult` per object, or None when ICP did not run;
+    timings: seconds per stage (:data:`TIMING_KEYS`; "crops" is the rest of the pose iterations:
+    crop boxes, roi_align, K_crop, pose updates).
+    """
+
+    obj_ids: Tensor
+    TCO: Tensor
+    scores: Tensor
+    boxes: Tensor
+    valid: Tensor
+    TCO_coarse: Tensor
+    timings: dict[str, float] = field(default_factory=dict)
+    icp: list[IcpResult] | None = None
+
+    def __len__(self) -> int:
+        return len(self.obj_ids)
+
+    @classmethod
+    def empty(cls, timings: dict[str, float] | None = None) -> "PoseEstimates":
+        z4 = torch.zeros((0, 4, 4), dtype=torch.float64)
+        return cls(torch.zeros(0, dtype=torch.int64), z4, torch.zeros(0), torch.zeros((0, 4)),
+                   torch.zeros(0, dtype=torch.bool), z4.clone(), dict(timings or {}))
+
+    def only_valid(self) -> "PoseEstimates":
+        """The estimates with a valid pose (same order)."""
+        keep = self.valid.nonzero().flatten().tolist()
+        icp = None if self.icp is None else [self.icp[i] for i in keep]
+        return replace(self, obj_ids=self.obj_ids[keep], TCO=self.TCO[keep], scores=self.scores[keep],
+                       boxes=self.boxes[keep], valid=self.valid[keep], TCO_coarse=self.TCO_coarse[keep], icp=icp)
+
+
+def valid_poses(TCO: Tensor, rotation_tol: float = 1e-3, min_depth: float = MIN_DEPTH) -> Tensor:
+    """``[N]`` bool: ``TCO [N,4,4]`` finite, ``R`` orthonormal with det +1 (within ``rotation_tol``), z >= ``min_depth`` m."""
+    TCO = TCO.double()
+    finite = torch.isfinite(TCO).all(dim=(1, 2))
+    R = torch.where(finite[:, None, None], TCO[:, :3, :3], torch.eye(3, dtype=TCO.dtype, device=TCO.device))
+    ortho = (R @ R.transpose(1, 2) - torch.eye(3, dtype=TCO.dtype, device=TCO.device)).abs().amax(dim=(1, 2)) <= rotation_tol
+    det = (torch.linalg.det(R) - 1.0).abs() <= rotation_tol
+    return finite & ortho & det & (TCO[:, 2, 3].nan_to_num(nan=-1.0) >= min_depth)
+
+
+def orthonormalise(TCO: Tensor) -> Tensor:
+    """``TCO [N,4,4]`` with each finite rotation replaced by the nearest rotation matrix (SVD, float64)."""
+    TCO = TCO.double().clone()
+    ok = torch.isfinite(TCO).all(dim=(1, 2))
+    if ok.any():
+        U, _, Vh = torch.linalg.svd(TCO[ok, :3, :3])
+        D = torch.ones(int(ok.sum()), 3, dtype=TCO.dtype, device=TCO.device)
+        D[:, 2] = torch.sign(torch.linalg.det(U @ Vh))
+        TCO[ok, :3, :3] = U @ torch.diag_embed(D) @ Vh
+    return TCO
+
+
+# ----------------------------------------------------------------------------- models of the objects
+
+
+@dataclass
+class ObjectModels:
+    """The BOP ``models/`` folder of the objects (PLY in mm, ``models_info.json``), read lazily.
+
+    Has what :meth:`cosy_lite.models.object_table.ObjectTable.from_dataset` reads of a dataset
+    (``models_dir``, ``models_info``, ``load_model``), so no dataset folder is needed.
+    """
+
+    models_dir: Path
+
+    def __post_init__(self) -> None:
+        self.models_dir = Path(self.models_dir)
+        if not (self.models_dir / "models_info.json").is_file():
+            raise FileNotFoundError(f"{self.models_dir / 'models_info.json'}: not found (a BOP models/ folder is needed)")
+
+    @cached_property
+    def models_info(self) -> dict[int, io.ModelInfo]:
+        return io.load_models_info(self.models_dir / "models_info.json")
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return sorted(self.models_info)
+
+    def load_model(self, obj_id: int):
+        """trimesh.Trimesh in metres."""
+        return io.load_model(self.models_dir / f"obj_{int(obj_id):06d}.ply")
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+class _Clock:
+    """Accumulates seconds per key; waits for the device before reading the clock (CUDA is asynchronous)."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    @contextmanager
+    def __call__(self, key: str) -> Iterator[None]:
+        self.sync()
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.sync()
+            self.seconds[key] += time.perf_counter() - t0
+
+
+class _TimedRenderer:
+    """A renderer whose ``render_tensors`` calls are timed under "render"."""
+
+    def __init__(self, renderer: Any, clock: _Clock):
+        self.renderer, self.clock = renderer, clock
+
+    def render_tensors(self, *args: Any, **kwargs: Any):
+        with self.clock("render"):
+            return self.renderer.render_tensors(*args, **kwargs)
+
+
+def _timed_net(net: nn.Module, clock: _Clock):
+    def run(x: Tensor) -> Tensor:
+        with clock("networks"):
+            return net(x)
+
+    return run
+
+
+# ----------------------------------------------------------------------------- the predictor
+
+
+def _as_rgb(rgb: Any) -> np.ndarray:
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be [H,W,3] uint8, got {rgb.dtype} {rgb.shape}")
+    return rgb
+
+
+def _as_K(K: Any) -> Tensor:
+    K = torch.as_tensor(np.asarray(K, dtype=np.float64))
+    if K.shape != (3, 3) or not torch.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"K must be a finite [3,3] with fx, fy > 0, got {tuple(K.shape)}")
+    return K
+
+
+def _box_masks(boxes: Tensor, size: tuple[int, int]) -> np.ndarray:
+    """``[N,H,W]`` bool masks filling ``boxes [N,4]`` (x1, y1, x2, y2 px)."""
+    H, W = size
+    masks = np.zeros((len(boxes), H, W), dtype=bool)
+    for k, (x1, y1, x2, y2) in enumerate(boxes.double().tolist()):
+        masks[k, max(0, int(np.floor(y1))):max(0, int(np.ceil(y2))), max(0, int(np.floor(x1))):max(0, int(np.ceil(x2)))] = True
+    return masks
+
+
+class Predictor:
+    """Detector -> coarse -> refiner -> optional depth ICP, for single images.
+
+    Args:
+        coarse, refiner: the pose networks (:class:`~cosy_lite.inference.loaders.PoseModel`);
+            refiner None: coarse only.
+        objects: :class:`~cosy_lite.models.object_table.ObjectTable` of the objects to estimate
+            (model points for the crops, diameters for the starting depth).
+        renderer: batched renderer of the same objects (:class:`~cosy_lite.render.renderer.PyrenderRenderer`).
+        detector: :class:`~cosy_lite.models.detector.Detector` or None (detections then have to be given).
+        n_refiner_iterations: refiner iterations after the coarse one (CosyPose: 4).
+        icp: run depth ICP when a depth image is given; icp_config: its settings.
+        icp_symmetries: obj_id -> symmetry set [S,4,4] (m) for ICP (None: no symmetry handling).
+        device: where the networks run; batch_size: crops per network call.
+    """
+
+    def __init__(self, coarse: PoseModel, refiner: PoseModel | None, objects: Any, renderer: Any,
+                 detector: nn.Module | None = None, n_refiner_iterations: int = 4, icp: bool = False,
+                 icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
+                 device: str | torch.device = "cpu", batch_size: int = 32):
+        if n_refiner_iterations < 0:
+            raise ValueError(f"n_refiner_iterations must be >= 0, got {n_refiner_iterations}")
+        if refiner is None and n_refiner_iterations > 0:
+            raise ValueError(f"n_refiner_iterations = {n_refiner_iterations} but no refiner model given")
+        self.device = torch.device(device)
+        self.coarse, self.refiner, self.detector = coarse, refiner, detector
+        self.objects = objects.to(self.device)
+        self.renderer = renderer
+        self.n_refiner_iterations = int(n_refiner_iterations)
+        self.icp, self.icp_config = bool(icp), icp_config or IcpConfig()
+        self.icp_symmetries = icp_symmetries
+        self.batch_size = int(batch_size)
+        for m in (coarse, refiner):
+            if m is not None:
+                missing = sorted(set(self.objects.obj_ids) - set(m.obj_ids))
+                if missing:
+                    raise SetupError(f"{m.describe()}: the {m.kind} model was not trained on obj_ids {missing} "
+                                     f"(it knows {m.obj_ids})")
+        self._warned_box_masks = False
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_checkpoints(
+        cls, detector: str | Path | None = None, coarse: str | Path | None = None,
+        refiner: str | Path | None = None, models_dir: str | Path | None = None, dataset: Any = None,
+        device: str | torch.device = "cpu", n_refiner_iterations: int = 4, icp: bool = False,
+        icp_config: IcpConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
+    ) -> "Predictor":
+        """Load the checkpoints and the object models.
+
+        Args:
+            detector, coarse, refiner: checkpoint files (``train.py`` outputs); detector None:
+                detections are passed to :meth:`predict`; refiner None: coarse only.
+            models_dir: a BOP ``models/`` folder, or ``dataset``: a
+                :class:`~cosy_lite.bop.dataset.BopDataset` or dataset folder (its ``models/``).
+            obj_ids: objects to estimate (default: those of the coarse checkpoint).
+            n_points: model points per object for the crop boxes (default: ObjectTable's).
+        Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
+        a checkpoint does not cover the objects.
+        """
+        from cosy_lite.bop.dataset import BopDataset
+        from cosy_lite.geometry.symmetries import symmetry_transforms
+        from cosy_lite.models.object_table import ObjectTable
+        from cosy_lite.render.renderer import PyrenderRenderer
+
+        if coarse is None:
+            raise SetupError("a coarse checkpoint is needed (coarse=...)")
+        if (models_dir is None) == (dataset is None):
+            raise SetupError("give exactly one of models_dir (a BOP models/ folder) and dataset")
+        if dataset is not None:
+            ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
+            models = ObjectModels(ds.models_dir)
+        else:
+            models = ObjectModels(Path(models_dir))
+        coarse_model = load_pose_model(coarse, "coarse", device)
+        refiner_model = None if refiner is None else load_pose_model(refiner, "refiner", device)
+        if refiner_model is None:
+            n_refiner_iterations = 0
+        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(coarse_model.obj_ids)
+        unknown = sorted(set(ids) - set(models.obj_ids))
+        if unknown:
+            raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
+        kwargs = {} if n_points is None else {"n_points": n_points}
+        objects = ObjectTable.from_dataset(models, ids, **kwargs)  # type: ignore[arg-type]
+        det = None if detector is None else load_detector(detector, device)
+        syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
+        renderer = PyrenderRenderer(models_dir=models.models_dir)
+        return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
+                   syms, device)
+
+    @property
+    def obj_ids(self) -> list[int]:
+        """Objects this predictor estimates."""
+        return list(self.objects.obj_ids)
+
+    # ------------------------------------------------------------------ stages
+    def _image_tensor(self, rgb: np.ndarray) -> Tensor:
+        """``[1,3,H,W]`` float in [0, 1] on the device."""
+        return torch.from_numpy(rgb).to(self.device).permute(2, 0, 1)[None].float().div_(255.0)
+
+    @torch.inference_mode()
+    def detect(self, rgb: np.ndarray) -> Detections:
+        """The detector's detections of ``rgb [H,W,3]`` uint8, by decreasing score (on CPU);
+        ``time_s``: seconds spent."""
+        if self.detector is None:
+            raise SetupError("no detector loaded: load one (detector=CKPT) or pass detections to predict()")
+        clock = _Clock(self.device)
+        with clock("detection"):
+            det = detect(self.detector, [self._image_tensor(_as_rgb(rgb))[0]])[0].to("cpu")
+        order = torch.argsort(det.scores, descending=True, stable=True)
+        det = det.select(order)
+        det.time_s = clock.seconds["detection"]
+        return det
+
+    def _select(self, det: Detections, obj_ids: Sequence[int] | None, from_detector: bool) -> Detections:
+        known = set(self.obj_ids)
+        wanted = known if obj_ids is None else {int(i) for i in obj_ids}
+        unknown = sorted(set(det.obj_ids.tolist()) - known)
+        if unknown and not from_detector and obj_ids is None:
+            raise ValueError(f"detections of obj_ids {unknown}, which the pose models do not know ({sorted(known)}); "
+                             "pass obj_ids=... to keep only some")
+        keep = torch.tensor([int(i) in wanted and int(i) in known for i in det.obj_ids.tolist()], dtype=torch.bool)
+        det = det.select(keep)
+        return det.select(torch.argsort(det.scores, descending=True, stable=True))
+
+    @torch.inference_mode()
+    def predict(self, rgb: np.ndarray, K: Any, depth: np.ndarray | None = None, detections: Detections | None = None,
+                obj_ids: Sequence[int] | None = None) -> PoseEstimates:
+        """Poses of the objects in one image.
+
+        Args:
+            rgb: [H,W,3] uint8; K: [3,3] intrinsics (px); depth: [H,W] camera z in metres (0 =
+                unknown), used by ICP (when enabled) only;
+            detections: boxes (+ masks for ICP), obj_ids, scores; None: run the detector;
+            obj_ids: keep only detections of these objects.
+        Returns: :class:`PoseEstimates` by decreasing score (empty when nothing is detected).
+        """
+        rgb, K = _as_rgb(rgb), _as_K(K)
+        H, W = rgb.shape[:2]
+        clock = _Clock(self.device)
+        t_start = time.perf_counter()
+        from_detector = detections is None
+        if from_detector:
+            detections = self.detect(rgb)
+            clock.seconds["detection"] = detections.time_s
+        det = self._select(detections, obj_ids, from_detector)
+        if len(det) == 0:
+            return PoseEstimates.empty(self._timings(clock, t_start))
+        TCO_coarse, TCO = self._poses(rgb, K, det, clock)
+        icp_results = None
+        if self.icp and depth is not None:
+            with clock("icp"):
+                TCO, icp_results = self._icp(TCO, K, depth, det, (H, W))
+        valid = valid_poses(TCO)
+        if not valid.all():
+            bad = (~valid).nonzero().flatten().tolist()
+            warnings.warn(f"Predictor: invalid poses (NaN/inf, not a rotation or behind the camera) of detections {bad} "
+                          f"(obj_ids {det.obj_ids[bad].tolist()}); flagged valid=False", RuntimeWarning, stacklevel=2)
+        return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
+                             TCO_coarse, self._timings(clock, t_start), icp_results)
+
+    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: _Clock) -> tuple[Tensor, Tensor]:
+        """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU."""
+        t0 = time.perf_counter()
+        before = clock.seconds["render"] + clock.seconds["networks"]
+        N = len(det)
+        rows = self.objects.index(det.obj_ids)
+        ids = det.obj_ids.tolist()
+        image = self._image_tensor(rgb)  # the image is converted once; each object's crop reads it
+        images = image.expand(N, -1, -1, -1)
+        K_b = K.to(self.device, torch.float32)[None].expand(N, 3, 3).contiguous()
+        points = self.objects.points[rows.to(self.device)]
+        TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
+                                           self.objects.diameters[rows.to(self.device)].double()).float()
+        renderer = _TimedRenderer(self.renderer, clock)
+        steps = [(self.coarse, 1)]
+        if self.refiner is not None:
+            steps.append((self.refiner, self.n_refiner_iterations))
+        TCO, TCO_coarse = TCO_init, TCO_init
+        for s, (model, n_iterations) in enumerate(steps):
+            net = _timed_net(model.net, clock)
+            for _ in range(n_iterations):  # one at a time: a pose gone invalid is not rendered again
+                live = valid_poses(TCO).nonzero().flatten().tolist()
+                if not live:
+                    break
+                if len(live) == N:
+                    TCO = iterate_poses(net, images, K_b, TCO, ids, points, renderer, 1, model.crop_resolution,
+                                        self.batch_size)[-1]
+                    continue
+                sel = torch.tensor(live, device=TCO.device)
+                new = iterate_poses(net, image.expand(len(live), -1, -1, -1), K_b[sel], TCO[sel], [ids[i] for i in live],
+                                    points[sel], renderer, 1, model.crop_resolution, self.batch_size)[-1]
+                TCO = TCO.clone()
+                TCO[sel] = new
+            if s == 0:
+                TCO_coarse = TCO
+        clock.sync()
+        spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
+        clock.seconds["crops"] += spent
+        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu())
+
+    def _icp(self, TCO: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
+             size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
+        from cosy_lite.inference.icp import refine_poses_icp
+
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.shape != size:
+            raise ValueError(f"depth must be [H,W] = {size} (as rgb), in metres; got {depth.shape}")
+        if det.masks is not None:
+            masks = det.masks.cpu().numpy().astype(bool)
+        else:
+            if not self._warned_box_masks:
+                warnings.warn("Predictor: detections without masks; ICP uses the detection boxes as masks",
+                              RuntimeWarning, stacklevel=3)
+                self._warned_box_masks = True
+            masks = _box_masks(det.boxes, size)
+        ok = valid_poses(TCO)
+        results: list[IcpResult | None] = [None] * len(TCO)
+        idx = ok.nonzero().flatten().tolist()
+        if idx:
+            ids = det.obj_ids.tolist()
+            syms = None if self.icp_symmetries is None else [self.icp_symmetries.get(ids[i]) for i in idx]
+            out = refine_poses_icp(TCO[idx].numpy(), K.numpy(), depth, masks[idx], self.renderer,
+                                   [ids[i] for i in idx], self.icp_config, syms)
+            for i, r in zip(idx, out):
+                results[i] = r
+        for i in range(len(TCO)):
+            if results[i] is None:
+                results[i] = IcpResult(TCO[i].numpy().copy(), False, "invalid pose before ICP")
+        TCO_new = torch.from_numpy(np.stack([r.TCO for r in results])).double()
+        return orthonormalise(TCO_new), results  # type: ignore[return-value]
+
+    @staticmethod
+    def _timings(clock: _Clock, t_start: float) -> dict[str, float]:
+        out = {k: float(clock.seconds.get(k, 0.0)) for k in TIMING_KEYS}
+        out["total"] = time.perf_counter() - t_start
+        return out

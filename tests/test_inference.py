@@ -1,0 +1,231 @@
+"""Inference pipeline on the tiny synthetic dataset with freshly initialised small models: the
+BOP19 CSV (header, ViVo top-n rows, one time per image, poses in mm), detection sources, empty
+detections, invalid poses never written, clear errors for bad checkpoints."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.bop.detections import Detections
+from cosy_lite.bop.results import HEADER, read_results_csv
+from cosy_lite.inference.bop_run import run_on_split
+from cosy_lite.inference.loaders import PoseModel
+from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, valid_poses
+from cosy_lite.inference.vivo import select_top_instances, targets_by_image
+from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
+from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
+
+OBJ_IDS = [1, 2, 5, 8]
+CROP = [60, 80]
+
+
+def _save_pose_ckpt(path: Path, kind: str, obj_ids=OBJ_IDS) -> Path:
+    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+
+    torch.manual_seed(0)
+    cfg = PoseNetConfig(backbone="resnet18", crop_resolution=CROP)
+    meta = {"obj_ids": list(obj_ids), "net": asdict(cfg), "dataset": "tiny", "model": kind}
+    save_checkpoint(path, Checkpoint(kind, build_pose_net(cfg).state_dict(), {"net": asdict(cfg)}, 0, meta=meta))
+    return path
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory) -> dict[str, Path]:
+    """Untrained checkpoints: the pose nets' zero-initialised heads make every update the identity."""
+    from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap
+
+    d = tmp_path_factory.mktemp("ckpts")
+    torch.manual_seed(0)
+    det = Detector(LabelMap(tuple(OBJ_IDS)), DetectorConfig(
+        name="maskrcnn_mobilenet_v3_large_fpn", fpn_channels=32, mask_head_channels=16, box_head_size=64,
+        min_size=160, max_size=214, rpn_pre_nms_top_n_test=100, rpn_post_nms_top_n_test=50,
+        box_score_thresh=0.0, box_detections_per_img=5))
+    save_checkpoint(d / "detector.pt", Checkpoint("detector", det.state_dict(), {}, 0, meta=det.meta()))
+    return {"coarse": _save_pose_ckpt(d / "coarse.pt", "coarse"), "refiner": _save_pose_ckpt(d / "refiner.pt", "refiner"),
+            "detector": d / "detector.pt"}
+
+
+@pytest.fixture(scope="module")
+def predictor(tiny_synth_root, ckpts) -> Predictor:
+    return Predictor.from_checkpoints(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=tiny_synth_root,
+                                      n_refiner_iterations=2)
+
+
+def _rows_by_image(csv: Path):
+    rows = defaultdict(list)
+    for e in read_results_csv(csv):
+        rows[(e.scene_id, e.im_id)].append(e)
+    return rows
+
+
+def test_infer_oracle_writes_a_valid_bop19_csv(tiny_synth_root, ckpts, tmp_path):
+    import cv2
+
+    import infer
+    from cosy_lite.cli import main as cli
+
+    rc = infer.main(["--dataset", str(tiny_synth_root), "--coarse", str(ckpts["coarse"]), "--refiner",
+                     str(ckpts["refiner"]), "--n-refiner-iters", "1", "--detections", "oracle", "--out",
+                     str(tmp_path), "--method", "cosy_lite", "--vis", "1", "--no-progress"])
+    assert rc == 0
+    csv = tmp_path / "cosylite_tiny-test.csv"
+    text = csv.read_text()
+    assert text.split("\n")[0] == HEADER and not text.endswith("\n")
+    ds = BopDataset(tiny_synth_root)
+    targets = targets_by_image(ds.test_targets())
+    rows = _rows_by_image(csv)
+    assert set(rows) == set(targets)
+    for key, counts in targets.items():
+        est = rows[key]
+        per_obj = defaultdict(int)
+        for e in est:
+            per_obj[e.obj_id] += 1
+        assert dict(per_obj) == counts  # oracle: every target instance once
+        assert len({e.time for e in est}) == 1 and est[0].time > 0
+        # Untrained nets change nothing: each pose is the starting pose of its GT visible box (t in mm in the file).
+        rec = ds.image("test", *key)
+        boxes = torch.tensor([[b[0], b[1], b[0] + b[2], b[1] + b[3]] for b in (i.bbox_visib for i in rec.gt_info)],
+                             dtype=torch.float64)
+        diam = torch.tensor([ds.models_info[g.obj_id].diameter for g in rec.gt], dtype=torch.float64)
+        starts = initial_pose_from_boxes(boxes, torch.as_tensor(rec.camera.K)[None].expand(len(boxes), 3, 3), diam)
+        for e in est:
+            assert np.isfinite(e.TCO).all() and 0.3 < e.TCO[2, 3] < 2.0
+            d = [np.abs(e.TCO[:3, 3] - s[:3, 3].numpy()).max() for g, s in zip(rec.gt, starts) if g.obj_id == e.obj_id]
+            assert min(d) < 1e-5  # m: 0.01 mm
+            np.testing.assert_allclose(e.TCO[:3, :3], CANONICAL_ROTATIONS["z_up"].numpy(), atol=1e-6)
+    lines = text.split("\n")[1:]
+    t_mm = np.array([[float(v) for v in line.split(",")[5].split()] for line in lines])
+    assert (np.linalg.norm(t_mm, axis=1) > 300).all()  # millimetres, not metres
+    vis = sorted((tmp_path / "vis").glob("*.png"))
+    assert len(vis) == 1 and cv2.imread(str(vis[0])).shape == (480, 640, 3)
+    assert cli(["check-results", str(csv), "--dataset", str(tiny_synth_root)]) == 0
+
+
+def _detections_json(path: Path, ds: BopDataset, n_copies: int, time_s: float) -> dict:
+    """Per GT instance ``n_copies`` detections (box shifted by 2 px each, decreasing scores);
+    returns {(scene, im, obj): scores}."""
+    entries, scores = [], defaultdict(list)
+    for scene_id, im_id in targets_by_image(ds.test_targets()):
+        rec = ds.image("test", scene_id, im_id)
+        for g, info in zip(rec.gt, rec.gt_info):
+            for k in range(n_copies):
+                s = round(0.9 - 0.1 * k - 0.001 * len(entries), 6)
+                x, y, w, h = info.bbox_visib
+                entries.append({"scene_id": scene_id, "image_id": im_id, "category_id": g.obj_id, "score": s,
+                                "bbox": [x + 2 * k, y, w, h], "time": time_s})
+                scores[(scene_id, im_id, g.obj_id)].append(s)
+    path.write_text(json.dumps(entries))
+    return scores
+
+
+def test_vivo_keeps_the_top_inst_count_detections_per_object(tiny_synth_root, predictor, tmp_path):
+    ds = BopDataset(tiny_synth_root)
+    scores = _detections_json(tmp_path / "dets.json", ds, n_copies=3, time_s=0.25)
+    summary = run_on_split(predictor, ds, tmp_path, detections=tmp_path / "dets.json", progress=False)
+    assert summary.ok and summary.n_invalid == 0
+    targets = targets_by_image(ds.test_targets())
+    rows = _rows_by_image(summary.csv_path)
+    for key, counts in targets.items():
+        est = rows[key]
+        got = defaultdict(list)
+        for e in est:
+            got[e.obj_id].append(e.score)
+        assert set(got) == set(counts)
+        for obj, n in counts.items():
+            assert len(got[obj]) == n < len(scores[(*key, obj)])  # more detections than inst_count
+            assert got[obj] == pytest.approx(sorted(scores[(*key, obj)], reverse=True)[:n], abs=1e-6)
+        assert [e.score for e in est] == sorted((e.score for e in est), reverse=True)  # ranked by score
+        assert len({e.time for e in est}) == 1 and est[0].time > 0.25  # the file's detection time counts
+
+
+def test_select_top_instances():
+    det = Detections(torch.tensor([[0, 0, 10, 10]] * 6, dtype=torch.float32), torch.tensor([1, 2, 1, 1, 2, 5]),
+                     torch.tensor([0.2, 0.9, 0.8, 0.5, 0.3, 0.7]))
+    out = select_top_instances(det, {1: 2, 2: 1})
+    assert out.obj_ids.tolist() == [2, 1, 1] and out.scores.tolist() == pytest.approx([0.9, 0.8, 0.5])
+
+
+def test_empty_detections(tiny_synth_root, predictor, tmp_path):
+    ds = BopDataset(tiny_synth_root)
+    rec = next(ds.images("test"))
+    est = predictor.predict(ds.load_rgb(rec), rec.camera.K, detections=Detections.empty())
+    assert len(est) == 0 and est.TCO.shape == (0, 4, 4) and set(est.timings) == set(TIMING_KEYS)
+    (tmp_path / "none.json").write_text("[]")
+    summary = run_on_split(predictor, ds, tmp_path, detections=tmp_path / "none.json", progress=False)
+    assert summary.ok and summary.n_estimates == 0 and summary.csv_path.read_text() == HEADER
+
+
+def test_predict_with_detector_models_dir_and_icp(tiny_synth_root, ckpts):
+    from cosy_lite.bop.detections import oracle_detections
+
+    ds = BopDataset(tiny_synth_root)
+    p = Predictor.from_checkpoints(detector=ckpts["detector"], coarse=ckpts["coarse"],
+                                   models_dir=tiny_synth_root / "models", icp=True)
+    rec = next(ds.images("test"))
+    rgb, depth = ds.load_rgb(rec), ds.load_depth(rec)
+    est = p.predict(rgb, rec.camera.K)  # the untrained detector's detections, whatever they are
+    assert est.timings["detection"] > 0 and len(est) <= 5 and bool(valid_poses(est.TCO).all())
+    det = oracle_detections(ds, rec, min_visib_fract=0.1)
+    est = p.predict(rgb, rec.camera.K, depth, detections=det)
+    assert len(est) == len(det) and len(est.icp) == len(det) and est.timings["icp"] > 0
+    assert all(r.accepted or r.reason for r in est.icp)
+    assert all(est.timings[k] > 0 for k in ("crops", "render", "networks", "total"))
+    assert est.timings["total"] >= sum(est.timings[k] for k in ("crops", "render", "networks", "icp"))
+
+
+class _NanNet(nn.Module):
+    def forward(self, x):
+        return torch.full((len(x), 9), float("nan"))
+
+
+def test_nan_poses_are_flagged_and_never_written(tiny_synth_root, predictor, tmp_path):
+    ds = BopDataset(tiny_synth_root)
+    bad = Predictor(PoseModel(_NanNet(), "coarse", tuple(CROP), OBJ_IDS), predictor.refiner, predictor.objects,
+                    predictor.renderer, n_refiner_iterations=1)
+    with pytest.warns(RuntimeWarning, match="invalid poses"):
+        summary = run_on_split(bad, ds, tmp_path, detections="oracle", progress=False)
+    n_targets = sum(t.inst_count for t in ds.test_targets())
+    assert summary.n_invalid == n_targets and summary.n_estimates == 0
+    assert summary.csv_path.read_text() == HEADER
+
+
+def test_clear_errors_for_bad_checkpoints(tiny_synth_root, ckpts, tmp_path, capsys):
+    import infer
+
+    def run(coarse, refiner):
+        rc = infer.main(["--dataset", str(tiny_synth_root), "--coarse", str(coarse), "--refiner", str(refiner),
+                         "--detections", "oracle", "--out", str(tmp_path), "--no-progress"])
+        return rc, capsys.readouterr().err
+
+    rc, err = run(tmp_path / "missing.pt", ckpts["refiner"])
+    assert rc == 2 and "missing.pt" in err and "not found" in err
+    rc, err = run(ckpts["refiner"], ckpts["refiner"])
+    assert rc == 2 and str(ckpts["refiner"]) in err and "'refiner'" in err and "coarse" in err
+    narrow = _save_pose_ckpt(tmp_path / "narrow.pt", "coarse", obj_ids=[1])
+    rc, err = run(narrow, ckpts["refiner"])
+    assert rc == 2 and "narrow.pt" in err and "covers obj_ids [1]" in err and "missing [" in err
+    assert not list(tmp_path.glob("*.csv"))
+
+
+def test_infer_with_the_detector(tiny_synth_root, ckpts, tmp_path):
+    import infer
+
+    rc = infer.main(["--dataset", str(tiny_synth_root), "--detector", str(ckpts["detector"]), "--coarse",
+                     str(ckpts["coarse"]), "--out", str(tmp_path), "--n-refiner-iters", "0", "--no-progress"])
+    assert rc == 0
+    targets = targets_by_image(BopDataset(tiny_synth_root).test_targets())
+    for key, est in _rows_by_image(tmp_path / "cosylite_tiny-test.csv").items():
+        per_obj = defaultdict(int)
+        for e in est:
+            per_obj[e.obj_id] += 1
+        assert all(n <= targets[key].get(o, 0) for o, n in per_obj.items())
+        assert len({e.time for e in est}) == 1
