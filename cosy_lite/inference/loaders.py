@@ -2,8 +2,8 @@
 
 Pose networks: :func:`load_pose_model` (``kind`` "coarse" or "refiner", written by
 :class:`cosy_lite.train.pose_task.PoseTask`: ``meta = {"obj_ids", "net", "dataset", "model"}``).
-Detector: :func:`load_detector` (``kind`` "detector", ``meta`` as :meth:`Detector.meta`:
-``{"detector_config", "label_map"}``). Every problem raises
+Detector: :func:`load_detector` (``kind`` "detector", read by
+:func:`cosy_lite.train.detector_task.load_detector`). Every problem raises
 :class:`~cosy_lite.train.checkpoint.CheckpointError` naming the file.
 """
 
@@ -68,20 +68,9 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
 
 
 def load_detector(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
-    """The :class:`~cosy_lite.models.detector.Detector` of the checkpoint at ``path`` (eval mode).
+    """The :class:`~cosy_lite.models.detector.Detector` of the checkpoint at ``path`` (eval mode),
+    as the detector training task loads it."""
+    from cosy_lite.train.detector_task import load_detector as load
 
-    One function so that a loader of the detector training task can replace it.
-    """
-    from cosy_lite.models.detector import Detector
-
-    path = Path(path)
-    ckpt = load_checkpoint(path, kind="detector")
-    for name in ("detector_config", "label_map"):
-        if name not in ckpt.meta:
-            raise CheckpointError(path, f"field 'meta.{name}' missing (needed to rebuild the detector)")
-    try:
-        model = Detector.from_meta(ckpt.meta)
-        model.load_state_dict(ckpt.model)
-    except (TypeError, ValueError, RuntimeError) as e:
-        raise CheckpointError(path, f"weights do not fit the detector of its meta ({type(e).__name__}: {e})") from None
-    return model.to(device).eval()
+    model, _ = load(path, device)
+    return model
