@@ -8,10 +8,12 @@ the YCB-V library's models written to a temporary folder by ``cosy_lite.synth.ob
 objects: the six textured YCB-V models (16384 faces, 1024x1024 textures). Poses: uniformly random
 rotations, the object's centre near the crop's centre, at the depth where its diameter spans the
 crop height (a CosyPose crop holds the object's box enlarged ~1.4x). Each configuration: one
-warm-up call, then ``--calls`` calls on the same batch; the table gives the median and best
+warm-up call, then ``--calls`` calls on the same batch, all configurations in turns (so that other
+processes' load on a shared machine falls on each alike); the table gives the median and best
 renders/s. ``--baselines`` adds, at the first resolution and largest batch: pyrender with a Scene
 per crop (``ObjectRenderer``, what the evaluator uses), pyrender with one Scene whose nodes are
-toggled, and this renderer without back-face culling and with one crop in flight.
+toggled, and this renderer without back-face culling, with one crop in flight, and with the crops
+as tiles of one tall framebuffer read back at once (the alternative measured and not kept).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import os
 import platform
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -55,13 +58,17 @@ def crop_batch(meshes: dict, obj_ids: list[int], B: int, resolution: tuple[int, 
     return ids, TCO, K
 
 
-def time_calls(fn: Callable[[], object], calls: int) -> list[float]:
-    fn()  # warm-up: meshes uploaded, framebuffers made
-    out = []
+def time_round_robin(fns: list[Callable[[], object]], calls: int) -> list[list[float]]:
+    """Seconds of ``calls`` calls of each fn, taken in turns (fn 0, 1, ..., 0, 1, ...) so that the
+    load of other processes on a shared machine falls on every fn alike. One warm-up call each."""
+    for fn in fns:
+        fn()  # meshes uploaded, framebuffers made
+    out: list[list[float]] = [[] for _ in fns]
     for _ in range(calls):
-        t = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t)
+        for fn, ts in zip(fns, out):
+            t = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t)
     return out
 
 
@@ -100,6 +107,55 @@ class PyrenderSceneToggle:
         return out
 
 
+def tiled_pass(gls, fbs, meshes, MVP, z_rows, cull, resolution, rgb, depth) -> None:
+    """The alternative measured and not kept: crop j drawn as tile j (rows [j H, (j+1) H)) of one
+    tall framebuffer, one read-back per channel for all (a drop-in for ``renderer._render_pass``)."""
+    from OpenGL import GL as gl
+
+    from cosy_lite.render import renderer as R
+
+    H, W = resolution
+    n = len(meshes)
+    key = ("tiles", n * H, W)  # kept beside the per-crop framebuffers of the GL state
+    if key not in gls.framebuffers:
+        gls.framebuffers[key] = [R._create_framebuffer(W, n * H)]
+    fb = gls.framebuffers[key][0]
+    gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fb.fbo)
+    gl.glDrawBuffers(2, [gl.GL_NONE if rgb is None else gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1])
+    gl.glViewport(0, 0, W, n * H)
+    gl.glScissor(0, 0, W, n * H)
+    gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+    for j, mesh in enumerate(meshes):
+        if mesh is None:
+            continue
+        kind = "depth" if rgb is None else ("color" if mesh.texture is None else "texture")
+        gl.glUseProgram(gls.programs[kind])
+        (gl.glEnable if cull[j] else gl.glDisable)(gl.GL_CULL_FACE)
+        gl.glViewport(0, j * H, W, H)
+        gl.glScissor(0, j * H, W, H)
+        gl.glUniformMatrix4fv(gls.uniforms[kind][0], 1, gl.GL_TRUE, MVP[j])
+        gl.glUniform4fv(gls.uniforms[kind][1], 1, z_rows[j])
+        if kind == "texture":
+            gl.glBindTexture(gl.GL_TEXTURE_2D, mesh.texture)
+        gl.glBindVertexArray(mesh.vao)
+        gl.glDrawElements(gl.GL_TRIANGLES, mesh.n_indices, gl.GL_UNSIGNED_INT, None)
+    gl.glBindVertexArray(0)
+    R._read_into(gl.GL_COLOR_ATTACHMENT1, W, n * H, gl.GL_RED, gl.GL_FLOAT, depth)
+    if rgb is not None:
+        R._read_into(gl.GL_COLOR_ATTACHMENT0, W, n * H, gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb)
+
+
+def render_tiled(renderer, *args, **kwargs):
+    """``renderer.render`` with :func:`tiled_pass` in place of the per-crop framebuffers."""
+    from cosy_lite.render import renderer as R
+
+    per_crop, R._render_pass = R._render_pass, tiled_pass
+    try:
+        return renderer.render(*args, **kwargs)
+    finally:
+        R._render_pass = per_crop
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", type=Path, default=None,
@@ -133,30 +189,32 @@ def main(argv: list[str] | None = None) -> None:
         print("| resolution | batch | output | renders/s (median) | renders/s (best) | ms/call (median) "
               "| mask fraction |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
-        rows = []
+        cases = []  # (resolution, batch, output, fn, mask fraction)
         for res in args.resolutions:
             for B in args.batches:
                 ids, TCO, K = crop_batch(meshes, args.objects, B, res)
+                mask = float(renderer.render(ids, TCO, K, res, depth_only=True).mask.mean())
                 for depth_only in (False, True):
-                    ts = time_calls(lambda: renderer.render(ids, TCO, K, res, depth_only=depth_only), args.calls)
-                    mask = renderer.render(ids, TCO, K, res, depth_only=True).mask.mean()
-                    rows.append((f"{res[0]}x{res[1]}", B, "depth" if depth_only else "rgb+depth", ts, mask))
+                    fn = partial(renderer.render, ids, TCO, K, res, depth_only=depth_only)
+                    cases.append((res, B, "depth" if depth_only else "rgb+depth", fn, mask))
         if args.baselines:
-            res, B = args.resolutions[0], max(args.batches)
-            ids, TCO, K = crop_batch(meshes, args.objects, B, res)
             from cosy_lite.render.object_renderer import ObjectRenderer
 
+            res, B = args.resolutions[0], max(args.batches)
+            ids, TCO, K = crop_batch(meshes, args.objects, B, res)
             per_scene = ObjectRenderer(meshes)
             toggle = PyrenderSceneToggle(meshes, res)
+            no_cull, tiled = PyrenderRenderer(meshes, cull_back_faces=False), PyrenderRenderer(meshes)
             variants = {
-                "pyrender, Scene per crop (ObjectRenderer)": lambda: per_scene.render(ids, TCO, K, res[1], res[0]),
-                "pyrender, one Scene, nodes toggled": lambda: toggle.render(ids, TCO, K),
-                "this, no back-face culling": PyrenderRenderer(meshes, cull_back_faces=False),
-                "this, 1 crop in flight": PyrenderRenderer(meshes, max_in_flight=1),
+                "pyrender, Scene per crop (ObjectRenderer)": partial(per_scene.render, ids, TCO, K, res[1], res[0]),
+                "pyrender, one Scene, nodes toggled": partial(toggle.render, ids, TCO, K),
+                "this, no back-face culling": partial(no_cull.render, ids, TCO, K, res),
+                "this, 1 crop in flight": partial(PyrenderRenderer(meshes, max_in_flight=1).render, ids, TCO, K, res),
+                "this, crops as tiles of one framebuffer": partial(render_tiled, tiled, ids, TCO, K, res),
             }
-            for name, v in variants.items():
-                fn = v if callable(v) else (lambda r=v: r.render(ids, TCO, K, res))
-                rows.append((f"{res[0]}x{res[1]}", B, f"rgb+depth, {name}", time_calls(fn, args.calls), float("nan")))
+            cases += [(res, B, f"rgb+depth, {name}", fn, float("nan")) for name, fn in variants.items()]
+        timings = time_round_robin([c[3] for c in cases], args.calls)
+        rows = [(f"{r[0]}x{r[1]}", B, out, ts, mask) for (r, B, out, _, mask), ts in zip(cases, timings)]
         for res_s, B, out, ts, mask in rows:
             med, best = float(np.median(ts)), min(ts)
             print(f"| {res_s} | {B} | {out} | {B / med:.0f} | {B / best:.0f} | {1000 * med:.1f} | {mask:.2f} |")
