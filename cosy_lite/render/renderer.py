@@ -254,12 +254,12 @@ class _GlState:
 
 
 def _create_gl_state(device_index: int | None) -> _GlState:
+    from cosy_lite.render.gl import EglContext
+
+    context = EglContext(device_index)  # first: selects EGL before PyOpenGL is imported
     from OpenGL import GL as gl
     from OpenGL.GL import shaders
 
-    from cosy_lite.render.gl import EglContext
-
-    context = EglContext(device_index)
     vs = shaders.compileShader(_VERTEX_SHADER, gl.GL_VERTEX_SHADER)
     programs = {
         kind: shaders.compileProgram(vs, shaders.compileShader(src, gl.GL_FRAGMENT_SHADER), validate=False)
