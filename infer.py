@@ -33,6 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--vis", type=int, default=0, metavar="N", help="write overlay PNGs for the first N images")
     ap.add_argument("--limit-images", type=int, default=None, metavar="N", help="only the first N target images")
     ap.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
+                    help="pose networks' arithmetic: fp32, or bf16 autocast (faster on CPUs with AVX512-BF16)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     return ap
 
@@ -63,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         predictor = Predictor.from_checkpoints(
             detector=args.detector if args.detections is None else None, coarse=args.coarse, refiner=args.refiner,
             dataset=dataset, device=device, n_refiner_iterations=args.n_refiner_iters if args.refiner else 0,
-            icp=args.icp)
+            icp=args.icp, precision=args.precision)
         summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
                                args.limit_images, progress=not args.no_progress,
                                detector_path=args.detector if args.detections is None else None)

@@ -57,7 +57,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def predictor(tiny_synth_root, ckpts) -> Predictor:
     return Predictor.from_checkpoints(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=tiny_synth_root,
-                                      n_refiner_iterations=2)
+                                      n_refiner_iterations=1)
 
 
 def _rows_by_image(csv: Path):
@@ -164,21 +164,17 @@ def test_empty_detections(tiny_synth_root, predictor, tmp_path):
     assert summary.ok and summary.n_estimates == 0 and summary.csv_path.read_text() == HEADER
 
 
-def test_predict_with_detector_models_dir_and_icp(tiny_synth_root, ckpts):
+def test_predict_from_models_dir_with_icp(tiny_synth_root, ckpts):
     from cosy_lite.bop.detections import oracle_detections
 
     ds = BopDataset(tiny_synth_root)
-    p = Predictor.from_checkpoints(detector=ckpts["detector"], coarse=ckpts["coarse"],
-                                   models_dir=tiny_synth_root / "models", icp=True)
+    p = Predictor.from_checkpoints(coarse=ckpts["coarse"], models_dir=tiny_synth_root / "models", icp=True)
     rec = next(ds.images("test"))
-    rgb, depth = ds.load_rgb(rec), ds.load_depth(rec)
-    est = p.predict(rgb, rec.camera.K)  # the untrained detector's detections, whatever they are
-    assert est.timings["detection"] > 0 and len(est) <= 5 and bool(valid_poses(est.TCO).all())
     det = oracle_detections(ds, rec, min_visib_fract=0.1)
-    est = p.predict(rgb, rec.camera.K, depth, detections=det)
+    est = p.predict(ds.load_rgb(rec), rec.camera.K, ds.load_depth(rec), detections=det)
     assert len(est) == len(det) and len(est.icp) == len(det) and est.timings["icp"] > 0
-    assert all(r.accepted or r.reason for r in est.icp)
-    assert all(est.timings[k] > 0 for k in ("crops", "render", "networks", "total"))
+    assert all(r.accepted or r.reason for r in est.icp) and bool(est.valid.all())
+    assert all(est.timings[k] > 0 for k in ("crops", "render", "networks", "total")) and est.timings["detection"] == 0
     assert est.timings["total"] >= sum(est.timings[k] for k in ("crops", "render", "networks", "icp"))
 
 
@@ -216,16 +212,18 @@ def test_clear_errors_for_bad_checkpoints(tiny_synth_root, ckpts, tmp_path, caps
     assert not list(tmp_path.glob("*.csv"))
 
 
-def test_infer_with_the_detector(tiny_synth_root, ckpts, tmp_path):
-    import infer
-
-    rc = infer.main(["--dataset", str(tiny_synth_root), "--detector", str(ckpts["detector"]), "--coarse",
-                     str(ckpts["coarse"]), "--out", str(tmp_path), "--n-refiner-iters", "0", "--no-progress"])
-    assert rc == 0
-    targets = targets_by_image(BopDataset(tiny_synth_root).test_targets())
-    for key, est in _rows_by_image(tmp_path / "cosylite_tiny-test.csv").items():
+def test_the_detector_feeds_predict_and_the_vivo_run(tiny_synth_root, ckpts, tmp_path):
+    ds = BopDataset(tiny_synth_root)
+    p = Predictor.from_checkpoints(detector=ckpts["detector"], coarse=ckpts["coarse"], dataset=tiny_synth_root)
+    rec = next(ds.images("test"))
+    est = p.predict(ds.load_rgb(rec), rec.camera.K)  # the untrained detector's detections, whatever they are
+    assert est.timings["detection"] > 0 and len(est) <= 5 and bool(est.valid.all())
+    summary = run_on_split(p, ds, tmp_path, progress=False)
+    assert summary.ok and summary.timings["detection"] > 0
+    targets = targets_by_image(ds.test_targets())
+    for key, est in _rows_by_image(summary.csv_path).items():
         per_obj = defaultdict(int)
         for e in est:
             per_obj[e.obj_id] += 1
-        assert all(n <= targets[key].get(o, 0) for o, n in per_obj.items())
+        assert all(n <= targets[key].get(o, 0) for o, n in per_obj.items())  # at most inst_count per target object
         assert len({e.time for e in est}) == 1

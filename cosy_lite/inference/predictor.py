@@ -178,12 +178,31 @@ class _TimedRenderer:
             return self.renderer.render_tensors(*args, **kwargs)
 
 
-def _timed_net(net: nn.Module, clock: _Clock):
+# name -> autocast dtype of the pose networks' forward pass (None: full fp32)
+PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
+
+
+def _timed_net(net: nn.Module, clock: _Clock, channels_last: bool, precision: str):
+    """``net`` as a function of ``[B,6,h,w]`` float32 -> ``[B,9]`` float32, timed under "networks"."""
+    dtype = PRECISIONS[precision]
+    memory_format = torch.channels_last if channels_last else torch.contiguous_format
+
     def run(x: Tensor) -> Tensor:
-        with clock("networks"):
-            return net(x)
+        with clock("networks"), torch.autocast(x.device.type, dtype=dtype or torch.float32, enabled=dtype is not None):
+            return net(x.contiguous(memory_format=memory_format)).float()
 
     return run
+
+
+@contextmanager
+def _flush_denormals() -> Iterator[None]:
+    """Denormal floats flushed to zero on CPU (x86 arithmetic on them is ~100x slower; untrained
+    nets produce many), back to PyTorch's default (off) afterwards."""
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
 
 
 # ----------------------------------------------------------------------------- the predictor
@@ -226,12 +245,17 @@ class Predictor:
         icp: run depth ICP when a depth image is given; icp_config: its settings.
         icp_symmetries: obj_id -> symmetry set [S,4,4] (m) for ICP (None: no symmetry handling).
         device: where the networks run; batch_size: crops per network call.
+        channels_last: run the networks in channels-last memory format (same numbers, faster
+            convolutions on CPU). The modules are moved to ``device`` and set to eval mode in place.
+        precision: a key of :data:`PRECISIONS`: "fp32", or "bf16" autocast of the networks'
+            forward pass (about 2x faster on CPUs with AVX512-BF16; the pose updates stay fp32).
     """
 
     def __init__(self, coarse: PoseModel, refiner: PoseModel | None, objects: Any, renderer: Any,
                  detector: nn.Module | None = None, n_refiner_iterations: int = 4, icp: bool = False,
                  icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
-                 device: str | torch.device = "cpu", batch_size: int = 32):
+                 device: str | torch.device = "cpu", batch_size: int = 32, channels_last: bool = True,
+                 precision: str = "fp32"):
         if n_refiner_iterations < 0:
             raise ValueError(f"n_refiner_iterations must be >= 0, got {n_refiner_iterations}")
         if refiner is None and n_refiner_iterations > 0:
@@ -244,8 +268,15 @@ class Predictor:
         self.icp, self.icp_config = bool(icp), icp_config or IcpConfig()
         self.icp_symmetries = icp_symmetries
         self.batch_size = int(batch_size)
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        self.channels_last, self.precision = bool(channels_last), precision
+        memory_format = torch.channels_last if self.channels_last else torch.contiguous_format
+        if detector is not None:
+            detector.to(self.device).eval()
         for m in (coarse, refiner):
             if m is not None:
+                m.net.to(self.device, memory_format=memory_format).eval()
                 missing = sorted(set(self.objects.obj_ids) - set(m.obj_ids))
                 if missing:
                     raise SetupError(f"{m.describe()}: the {m.kind} model was not trained on obj_ids {missing} "
@@ -259,6 +290,7 @@ class Predictor:
         refiner: str | Path | None = None, models_dir: str | Path | None = None, dataset: Any = None,
         device: str | torch.device = "cpu", n_refiner_iterations: int = 4, icp: bool = False,
         icp_config: IcpConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
+        precision: str = "fp32",
     ) -> "Predictor":
         """Load the checkpoints and the object models.
 
@@ -269,6 +301,7 @@ class Predictor:
                 :class:`~cosy_lite.bop.dataset.BopDataset` or dataset folder (its ``models/``).
             obj_ids: objects to estimate (default: those of the coarse checkpoint).
             n_points: model points per object for the crop boxes (default: ObjectTable's).
+            precision: "fp32" or "bf16" (see the class).
         Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
         a checkpoint does not cover the objects.
         """
@@ -300,7 +333,7 @@ class Predictor:
         syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
         renderer = PyrenderRenderer(models_dir=models.models_dir)
         return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
-                   syms, device)
+                   syms, device, precision=precision)
 
     @property
     def obj_ids(self) -> list[int]:
@@ -319,7 +352,7 @@ class Predictor:
         if self.detector is None:
             raise SetupError("no detector loaded: load one (detector=CKPT) or pass detections to predict()")
         clock = _Clock(self.device)
-        with clock("detection"):
+        with clock("detection"), _flush_denormals():
             det = detect(self.detector, [self._image_tensor(_as_rgb(rgb))[0]])[0].to("cpu")
         order = torch.argsort(det.scores, descending=True, stable=True)
         det = det.select(order)
@@ -360,7 +393,8 @@ class Predictor:
         det = self._select(detections, obj_ids, from_detector)
         if len(det) == 0:
             return PoseEstimates.empty(self._timings(clock, t_start))
-        TCO_coarse, TCO = self._poses(rgb, K, det, clock)
+        with _flush_denormals():
+            TCO_coarse, TCO = self._poses(rgb, K, det, clock)
         icp_results = None
         if self.icp and depth is not None:
             with clock("icp"):
@@ -381,7 +415,7 @@ class Predictor:
         rows = self.objects.index(det.obj_ids)
         ids = det.obj_ids.tolist()
         image = self._image_tensor(rgb)  # the image is converted once; each object's crop reads it
-        images = image.expand(N, -1, -1, -1)
+        images = image.expand(N, -1, -1, -1).contiguous()  # one copy per object, once (roi_align would copy a view each call)
         K_b = K.to(self.device, torch.float32)[None].expand(N, 3, 3).contiguous()
         points = self.objects.points[rows.to(self.device)]
         TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
@@ -392,7 +426,7 @@ class Predictor:
             steps.append((self.refiner, self.n_refiner_iterations))
         TCO, TCO_coarse = TCO_init, TCO_init
         for s, (model, n_iterations) in enumerate(steps):
-            net = _timed_net(model.net, clock)
+            net = _timed_net(model.net, clock, self.channels_last, self.precision)
             for _ in range(n_iterations):  # one at a time: a pose gone invalid is not rendered again
                 live = valid_poses(TCO).nonzero().flatten().tolist()
                 if not live:
@@ -402,7 +436,7 @@ class Predictor:
                                         self.batch_size)[-1]
                     continue
                 sel = torch.tensor(live, device=TCO.device)
-                new = iterate_poses(net, image.expand(len(live), -1, -1, -1), K_b[sel], TCO[sel], [ids[i] for i in live],
+                new = iterate_poses(net, images[sel], K_b[sel], TCO[sel], [ids[i] for i in live],
                                     points[sel], renderer, 1, model.crop_resolution, self.batch_size)[-1]
                 TCO = TCO.clone()
                 TCO[sel] = new
