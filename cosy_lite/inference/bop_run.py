@@ -179,7 +179,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
         t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
         summary.image_times.append(t_image)
-        timings = dict(est.timings, detection=0.0 if given is not None else det.time_s)
+        timings = dict(est.timings, detection=max(given.time_s, 0.0) if given is not None else det.time_s)
         for key in TIMING_KEYS:
             summary.timings[key] += timings[key] if key != "total" else t_image
         summary.n_detections += len(det)
