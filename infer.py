@@ -12,6 +12,7 @@ hand over to :func:`cosy_lite.inference.bop_run.run_on_split` (ViVo targets, CSV
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -41,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # Waiting OpenMP threads sleep instead of spinning (read when torch loads, so only if it has
+    # not yet): on CPUs shared with other jobs, spinning threads made the networks 3-8x slower.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.errors import BopFormatError
     from cosy_lite.inference.bop_run import run_on_split

@@ -7,8 +7,11 @@ The image: the first test image of ``--dataset`` with at least 5 instances >= 50
 most visible 1 (or 5) instances, with their GT visible boxes and masks as detections (the
 reference numbers exclude the detector) and the dataset's depth for ICP. Per profile (pose-net
 backbone + crop size; untrained weights, which cost the same as trained ones) and object count:
-the coarse model + 4 refiner iterations through :meth:`Predictor.predict`, torch backend,
-``--threads`` CPU threads, fp32 and bf16 autocast of the networks (``--precisions``), channels-last; warm-up calls first (GL context, mesh uploads, oneDNN kernels for the
+the coarse model + 4 refiner iterations through :meth:`Predictor.predict` (variants called in
+turn, so that they share the machine's load), torch backend,
+``--threads`` CPU threads (OpenMP waiting passively unless ``OMP_WAIT_POLICY`` says otherwise: spinning
+threads are 3-8x slower on cores shared with other jobs), networks with BatchNorm folded and
+channels-last, fp32 and bf16 autocast (``--precisions``); warm-up calls first (GL context, mesh uploads, oneDNN kernels for the
 batch shape), then ``--repeats`` calls; medians and the best call, broken down into crops (boxes,
 roi_align, K_crop, pose updates), render, networks and ICP. The detector (``--detector``, else the
 demo profile's detector untrained: ``configs/detector/demo.yaml``) is timed separately on the
@@ -120,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--detector", type=Path, default=None, help="detector checkpoint (default: demo profile, untrained)")
     p.add_argument("--no-icp", action="store_true")
     args = p.parse_args(argv)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP; see infer.py
 
     import torch
 
@@ -135,24 +139,27 @@ def main(argv: list[str] | None = None) -> None:
     renderer = PyrenderRenderer.from_dataset(ds)
     objects = ObjectTable.from_dataset(ds, sorted({rec.gt[i].obj_id for i in keep}))
     load0 = os.getloadavg()
-    print(f"# {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} threads; "
+    print(f"# {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} threads, "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}; "
           f"{ds.name} test scene {rec.scene_id} image {rec.im_id} (640x480), objects {[rec.gt[i].obj_id for i in keep]}")
     det_med, det_best, n_det, det_what = time_detector(ds, rgb, args.detector, args.repeats)
     print(f"# detector {det_what}: median {det_med * 1e3:.0f} ms, best {det_best * 1e3:.0f} ms ({n_det} detections)")
     print("| profile | precision | objects | pose s (median) | pose s (best) | vs reference | crops ms | render ms | networks ms "
           "| ICP ms | + ICP s | + detector + ICP s |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for profile, precision in ((p, q) for p in args.profiles for q in args.precisions):
-        pred = build_predictor(ds, renderer, objects, profile, not args.no_icp, precision)
-        for n in args.objects:
-            det = oracle(ds, rec, keep[:n])
-            runs = []
-            for k in range(args.warmup + args.repeats):
+    variants = [(p, q) for p in args.profiles for q in args.precisions]
+    predictors = {v: build_predictor(ds, renderer, objects, v[0], not args.no_icp, v[1]) for v in variants}
+    for n in args.objects:
+        det = oracle(ds, rec, keep[:n])
+        runs: dict[tuple[str, str], list[dict[str, float]]] = {v: [] for v in variants}
+        for k in range(args.warmup + args.repeats):  # round-robin: every variant sees the same load
+            for v, pred in predictors.items():
                 est = pred.predict(rgb, rec.camera.K, None if args.no_icp else depth, detections=det)
                 if k >= args.warmup:
-                    runs.append(est.timings)
-            med = {k: float(np.median([r[k] for r in runs])) for k in (*STAGES, "total")}
-            pose = [r["crops"] + r["render"] + r["networks"] for r in runs]
+                    runs[v].append(est.timings)
+        for (profile, precision), rs in runs.items():
+            med = {k: float(np.median([r[k] for r in rs])) for k in (*STAGES, "total")}
+            pose = [r["crops"] + r["render"] + r["networks"] for r in rs]
             pose_med = float(np.median(pose))
             print(f"| {profile} ({PROFILES[profile][0]}, {PROFILES[profile][1][0]}x{PROFILES[profile][1][1]}) "
                   f"| {precision} | {n} "

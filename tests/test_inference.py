@@ -227,3 +227,25 @@ def test_the_detector_feeds_predict_and_the_vivo_run(tiny_synth_root, ckpts, tmp
             per_obj[e.obj_id] += 1
         assert all(n <= targets[key].get(o, 0) for o, n in per_obj.items())  # at most inst_count per target object
         assert len({e.time for e in est}) == 1
+
+
+def test_inference_net_folds_batchnorm_without_changing_outputs():
+    from cosy_lite.inference.predictor import inference_net
+    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+
+    torch.manual_seed(0)
+    net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=CROP)).eval()
+    nn.init.normal_(net.head.weight, std=0.01)
+    for m in net.modules():  # statistics of a trained network, not the identity of a fresh one
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+    fast = inference_net(net, torch.device("cpu"))
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in fast.modules())
+    assert any(isinstance(m, nn.BatchNorm2d) for m in net.modules())  # the given network is untouched
+    x = torch.rand(3, 6, *CROP)
+    with torch.inference_mode():
+        ref, out = net(x), fast(x.contiguous(memory_format=torch.channels_last))
+    assert ref.abs().max() > 1e-3
+    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))

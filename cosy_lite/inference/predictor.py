@@ -15,6 +15,7 @@ Robot users: ``Predictor.from_checkpoints(coarse=..., refiner=..., models_dir=..
 
 from __future__ import annotations
 
+import copy
 import time
 import warnings
 from collections import defaultdict
@@ -194,6 +195,22 @@ def _timed_net(net: nn.Module, clock: _Clock, channels_last: bool, precision: st
     return run
 
 
+def inference_net(net: nn.Module, device: torch.device, channels_last: bool = True, fuse_bn: bool = True) -> nn.Module:
+    """A copy of a pose network for inference on ``device``, in eval mode: BatchNorm folded into the
+    preceding convolutions of ``net.backbone.net`` (``torch.fx``; same outputs to ~1e-6 relative,
+    ~1.2-1.5x faster on CPU), optionally channels-last. The given module is left as it is."""
+    out = copy.deepcopy(net).eval().to(device)
+    backbone = getattr(getattr(out, "backbone", None), "net", None)
+    if fuse_bn and isinstance(backbone, nn.Module):
+        from torch.fx.experimental.optimization import fuse
+
+        try:
+            out.backbone.net = fuse(backbone)
+        except Exception:  # noqa: BLE001 - a backbone torch.fx cannot trace stays unfused (only slower)
+            pass
+    return out.to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+
+
 @contextmanager
 def _flush_denormals() -> Iterator[None]:
     """Denormal floats flushed to zero on CPU (x86 arithmetic on them is ~100x slower; untrained
@@ -246,7 +263,8 @@ class Predictor:
         icp_symmetries: obj_id -> symmetry set [S,4,4] (m) for ICP (None: no symmetry handling).
         device: where the networks run; batch_size: crops per network call.
         channels_last: run the networks in channels-last memory format (same numbers, faster
-            convolutions on CPU). The modules are moved to ``device`` and set to eval mode in place.
+            convolutions on CPU); fuse_bn: fold BatchNorm into the convolutions. Both act on copies
+            of the networks (:func:`inference_net`); the given modules are not changed.
         precision: a key of :data:`PRECISIONS`: "fp32", or "bf16" autocast of the networks'
             forward pass (about 2x faster on CPUs with AVX512-BF16; the pose updates stay fp32).
     """
@@ -255,7 +273,7 @@ class Predictor:
                  detector: nn.Module | None = None, n_refiner_iterations: int = 4, icp: bool = False,
                  icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
                  device: str | torch.device = "cpu", batch_size: int = 32, channels_last: bool = True,
-                 precision: str = "fp32"):
+                 precision: str = "fp32", fuse_bn: bool = True):
         if n_refiner_iterations < 0:
             raise ValueError(f"n_refiner_iterations must be >= 0, got {n_refiner_iterations}")
         if refiner is None and n_refiner_iterations > 0:
@@ -271,12 +289,12 @@ class Predictor:
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.channels_last, self.precision = bool(channels_last), precision
-        memory_format = torch.channels_last if self.channels_last else torch.contiguous_format
         if detector is not None:
             detector.to(self.device).eval()
-        for m in (coarse, refiner):
+        self._nets: dict[str, nn.Module] = {}
+        for role, m in (("coarse", coarse), ("refiner", refiner)):
             if m is not None:
-                m.net.to(self.device, memory_format=memory_format).eval()
+                self._nets[role] = inference_net(m.net, self.device, self.channels_last, fuse_bn)
                 missing = sorted(set(self.objects.obj_ids) - set(m.obj_ids))
                 if missing:
                     raise SetupError(f"{m.describe()}: the {m.kind} model was not trained on obj_ids {missing} "
@@ -421,12 +439,12 @@ class Predictor:
         TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
                                            self.objects.diameters[rows.to(self.device)].double()).float()
         renderer = _TimedRenderer(self.renderer, clock)
-        steps = [(self.coarse, 1)]
+        steps = [("coarse", self.coarse, 1)]
         if self.refiner is not None:
-            steps.append((self.refiner, self.n_refiner_iterations))
+            steps.append(("refiner", self.refiner, self.n_refiner_iterations))
         TCO, TCO_coarse = TCO_init, TCO_init
-        for s, (model, n_iterations) in enumerate(steps):
-            net = _timed_net(model.net, clock, self.channels_last, self.precision)
+        for role, model, n_iterations in steps:
+            net = _timed_net(self._nets[role], clock, self.channels_last, self.precision)
             for _ in range(n_iterations):  # one at a time: a pose gone invalid is not rendered again
                 live = valid_poses(TCO).nonzero().flatten().tolist()
                 if not live:
@@ -440,7 +458,7 @@ class Predictor:
                                     points[sel], renderer, 1, model.crop_resolution, self.batch_size)[-1]
                 TCO = TCO.clone()
                 TCO[sel] = new
-            if s == 0:
+            if role == "coarse":
                 TCO_coarse = TCO
         clock.sync()
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
