@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     # not yet): on CPUs shared with other jobs, spinning threads made the networks 3-8x slower.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.results import results_filename
     from cosy_lite.errors import BopFormatError
     from cosy_lite.inference.bop_run import run_on_split
     from cosy_lite.inference.predictor import Predictor, SetupError
@@ -60,6 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     method = args.method.replace("_", "")
     if method != args.method:
         print(f"note: method name {args.method!r} written as {method!r} (BOP file names have one '_')")
+    try:
+        results_filename(method, "dataset", args.split)
+    except ValueError as e:
+        print(f"error: --method / --split: {e}", file=sys.stderr)
+        return 2
     root = Path(args.dataset) if Path(args.dataset).is_dir() else (args.data_root or default_data_root()) / args.dataset
     try:
         import torch

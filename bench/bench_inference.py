@@ -1,23 +1,24 @@
 """Latency of the inference pipeline (``cosy_lite.inference.predictor``) on one 640x480 image.
 
 Usage: python bench/bench_inference.py [--dataset data/ycbv-synth] [--objects 1 5] [--repeats 5]
-       [--threads 2] [--detector CKPT] [--profiles effb3 demo]
+       [--threads 2] [--detector CKPT] [--profiles effb3 demo] [--precisions fp32 bf16] [--no-icp]
 
 The image: the first test image of ``--dataset`` with at least 5 instances >= 50 % visible; its
 most visible 1 (or 5) instances, with their GT visible boxes and masks as detections (the
 reference numbers exclude the detector) and the dataset's depth for ICP. Per profile (pose-net
-backbone + crop size; untrained weights, which cost the same as trained ones) and object count:
-the coarse model + 4 refiner iterations through :meth:`Predictor.predict` (variants called in
-turn, so that they share the machine's load), torch backend,
-``--threads`` CPU threads (OpenMP waiting passively unless ``OMP_WAIT_POLICY`` says otherwise: spinning
-threads are 3-8x slower on cores shared with other jobs), networks with BatchNorm folded and
-channels-last, fp32 and bf16 autocast (``--precisions``); warm-up calls first (GL context, mesh uploads, oneDNN kernels for the
-batch shape), then ``--repeats`` calls; medians and the best call, broken down into crops (boxes,
-roi_align, K_crop, pose updates), render, networks and ICP. The detector (``--detector``, else the
-demo profile's detector untrained: ``configs/detector/demo.yaml``) is timed separately on the
-same image. Reference (issue 6): the public CosyPose implementation (happypose), EfficientNet-B3
-at 240x320, 2 threads, without the detector, on the project machine: 0.74 s (1 object), 4.45 s
-(5 objects).
+backbone + crop size; untrained weights, which cost the same as trained ones), precision (fp32 or
+bf16 autocast, ``--precisions``) and object count: the coarse model + 4 refiner iterations through
+:meth:`Predictor.predict` (networks with BatchNorm folded, channels-last), torch backend,
+``--threads`` CPU threads with OpenMP waiting passively unless ``OMP_WAIT_POLICY`` says otherwise
+(spinning threads are many times slower on cores shared with other jobs). Warm-up calls first (GL
+context, mesh uploads, oneDNN kernels for the batch shape), then ``--repeats`` calls, the variants
+called in turn so that they share the machine's load; medians and the best call, broken down into
+crops (boxes, roi_align, K_crop, pose updates), render, networks and ICP. The detector
+(``--detector``, else the demo profile's detector untrained: ``configs/detector/demo.yaml``) is
+timed separately on the same image.
+
+Reference (issue 6): the public CosyPose implementation (happypose), EfficientNet-B3 at 240x320,
+2 threads, without the detector, on the project machine: 0.74 s (1 object), 4.45 s (5 objects).
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ def pick_image(ds, max_objects: int, min_visib: float = 0.5):
     """(record, indices of its ``max_objects`` most visible GT instances) of the first test image that has them."""
     for rec in ds.images("test"):
         infos = rec.gt_info or []
-        order = sorted((i for i, g in enumerate(infos) if g.visib_fract >= min_visib), key=lambda i: -infos[i].visib_fract)
+        order = sorted((i for i, g in enumerate(infos) if g.visib_fract >= min_visib),
+                       key=lambda i: -infos[i].visib_fract)
         if len(order) >= max_objects and rec.depth_path is not None:
             return rec, order[:max_objects]
     raise SystemExit(f"{ds.root}: no test image with {max_objects} instances >= {min_visib:.0%} visible")
@@ -56,7 +58,8 @@ def oracle(ds, rec, keep: list[int]):
 
     boxes = torch.tensor([[b[0], b[1], b[0] + b[2], b[1] + b[3]] for b in (rec.gt_info[i].bbox_visib for i in keep)],
                          dtype=torch.float32)
-    masks = torch.from_numpy(np.stack([load_mask(ds.mask_path("test", rec.scene_id, rec.im_id, i, visib=True)) for i in keep]))
+    masks = np.stack([load_mask(ds.mask_path("test", rec.scene_id, rec.im_id, i, visib=True)) for i in keep])
+    masks = torch.from_numpy(masks)
     return Detections(boxes, torch.tensor([rec.gt[i].obj_id for i in keep]), torch.linspace(1.0, 0.5, len(keep)), masks)
 
 
@@ -90,7 +93,8 @@ def time_detector(ds, rgb: np.ndarray, ckpt: Path | None, repeats: int) -> tuple
         from cosy_lite.config import load_config
         from cosy_lite.train.detector_task import DetectorTrainConfig
 
-        cfg = load_config(DetectorTrainConfig, Path(__file__).resolve().parents[1] / "configs" / "detector" / "demo.yaml")
+        demo = Path(__file__).resolve().parents[1] / "configs" / "detector" / "demo.yaml"
+        cfg = load_config(DetectorTrainConfig, demo)
         torch.manual_seed(0)
         model = Detector(LabelMap(tuple(ds.obj_ids)), cfg.detector).eval()
         what = f"{cfg.detector.name} (demo profile, untrained)"
@@ -141,11 +145,12 @@ def main(argv: list[str] | None = None) -> None:
     load0 = os.getloadavg()
     print(f"# {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} threads, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}; "
-          f"{ds.name} test scene {rec.scene_id} image {rec.im_id} (640x480), objects {[rec.gt[i].obj_id for i in keep]}")
+          f"{ds.name} test scene {rec.scene_id} image {rec.im_id} (640x480), "
+          f"objects {[rec.gt[i].obj_id for i in keep]}")
     det_med, det_best, n_det, det_what = time_detector(ds, rgb, args.detector, args.repeats)
     print(f"# detector {det_what}: median {det_med * 1e3:.0f} ms, best {det_best * 1e3:.0f} ms ({n_det} detections)")
-    print("| profile | precision | objects | pose s (median) | pose s (best) | vs reference | crops ms | render ms | networks ms "
-          "| ICP ms | + ICP s | + detector + ICP s |")
+    print("| profile | precision | objects | pose s (median) | pose s (best) | vs reference | crops ms | render ms "
+          "| networks ms | ICP ms | + ICP s | + detector + ICP s |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     variants = [(p, q) for p in args.profiles for q in args.precisions]
     predictors = {v: build_predictor(ds, renderer, objects, v[0], not args.no_icp, v[1]) for v in variants}

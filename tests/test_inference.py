@@ -19,7 +19,7 @@ from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.results import HEADER, read_results_csv
 from cosy_lite.inference.bop_run import run_on_split
 from cosy_lite.inference.loaders import PoseModel
-from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, valid_poses
+from cosy_lite.inference.predictor import TIMING_KEYS, Predictor
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
 from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
 from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
@@ -50,8 +50,8 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
         min_size=160, max_size=214, rpn_pre_nms_top_n_test=100, rpn_post_nms_top_n_test=50,
         box_score_thresh=0.0, box_detections_per_img=5))
     save_checkpoint(d / "detector.pt", Checkpoint("detector", det.state_dict(), {}, 0, meta=det.meta()))
-    return {"coarse": _save_pose_ckpt(d / "coarse.pt", "coarse"), "refiner": _save_pose_ckpt(d / "refiner.pt", "refiner"),
-            "detector": d / "detector.pt"}
+    return {"coarse": _save_pose_ckpt(d / "coarse.pt", "coarse"),
+            "refiner": _save_pose_ckpt(d / "refiner.pt", "refiner"), "detector": d / "detector.pt"}
 
 
 @pytest.fixture(scope="module")
@@ -249,3 +249,19 @@ def test_inference_net_folds_batchnorm_without_changing_outputs():
         ref, out = net(x), fast(x.contiguous(memory_format=torch.channels_last))
     assert ref.abs().max() > 1e-3
     torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
+
+
+def test_valid_poses_and_orthonormalise():
+    from cosy_lite.inference.predictor import orthonormalise, valid_poses
+
+    T = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
+    T[:, 2, 3] = 0.5
+    T[1, 0, 0] = float("nan")
+    T[2, 2, 3] = -0.5  # behind the camera
+    T[3, :3, :3] *= 1.01  # not a rotation
+    T[4, 0, 1] = 1e-4  # a rotation up to float32 noise
+    assert valid_poses(T).tolist() == [True, False, False, False, True]
+    fixed = orthonormalise(T)
+    assert torch.isnan(fixed[1]).any() and valid_poses(fixed).tolist() == [True, False, False, True, True]
+    R = fixed[4, :3, :3]
+    assert float((R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-12

@@ -86,6 +86,7 @@ class RunSummary:
     timings: dict[str, float] = field(default_factory=dict)
     icp_accepted: int = 0
     icp_runs: int = 0
+    no_depth: int = 0  # images without a depth file (ICP asked for but skipped)
     vis_paths: list[Path] = field(default_factory=list)
     problems: list[Problem] = field(default_factory=list)
 
@@ -101,6 +102,8 @@ class RunSummary:
                f"time per image: mean {np.mean(self.image_times or [0.0]):.3f} s; ms per image: {per}"]
         if self.icp_runs:
             out.append(f"ICP accepted {self.icp_accepted} of {self.icp_runs} poses")
+        if self.no_depth:
+            out.append(f"WARNING: {self.no_depth} images have no depth file: ICP skipped on them")
         if self.vis_paths:
             out.append(f"overlays: {self.vis_paths[0].parent} ({len(self.vis_paths)} PNGs)")
         verdict = "passes the results checker" if self.ok else "FAILS the results checker (see above)"
@@ -122,7 +125,8 @@ def _write_overlay(path: Path, rgb: np.ndarray, rec: ImageRecord, est, predictor
     return path
 
 
-def check_coverage(predictor: Predictor, targets_path: Path, target_obj_ids: set[int], detector_path: Path | None) -> None:
+def check_coverage(predictor: Predictor, targets_path: Path, target_obj_ids: set[int],
+                   detector_path: Path | None) -> None:
     """SetupError naming the checkpoint when the pose models (or the detector) miss target objects."""
     models = [m for m in (predictor.coarse, predictor.refiner) if m is not None]
     for m in models:
@@ -132,7 +136,8 @@ def check_coverage(predictor: Predictor, targets_path: Path, target_obj_ids: set
                              f"asks for {sorted(target_obj_ids)} (missing {missing})")
     missing = sorted(target_obj_ids - set(predictor.obj_ids))
     if missing:
-        raise SetupError(f"the predictor estimates obj_ids {predictor.obj_ids}, but {targets_path} asks for {missing} too")
+        raise SetupError(f"the predictor estimates obj_ids {predictor.obj_ids}, but {targets_path} "
+                         f"asks for {missing} too")
     if predictor.detector is not None and detector_path is not None:
         det_ids = set(predictor.detector.label_map.obj_ids)
         missing = sorted(target_obj_ids - det_ids)
@@ -172,6 +177,8 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         rec = dataset.image(split_folder, scene_id, im_id)
         rgb = dataset.load_rgb(rec)
         depth = dataset.load_depth(rec) if predictor.icp and rec.depth_path is not None else None
+        if predictor.icp and depth is None:
+            summary.no_depth += 1
         given = source(rec) if source is not None else None
         t0 = time.perf_counter()
         det = given if given is not None else predictor.detect(rgb)

@@ -60,7 +60,8 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
         net = build_pose_net(cfg)
         net.load_state_dict(ckpt.model)
     except (TypeError, ValueError, RuntimeError) as e:
-        raise CheckpointError(path, f"weights do not fit the network of meta.net {net_cfg} ({type(e).__name__}: {e})") from None
+        raise CheckpointError(path, f"weights do not fit the network of meta.net {net_cfg} "
+                                    f"({type(e).__name__}: {e})") from None
     h, w = (int(v) for v in cfg.crop_resolution)
     if not obj_ids:
         raise CheckpointError(path, "field 'meta.obj_ids' is empty")

@@ -12,7 +12,8 @@ from cosy_lite.vis.overlay import draw_contour, draw_label, object_colour
 GT_COLOUR = (255, 255, 255)
 
 
-def _silhouettes(renderer: Any, obj_ids: Sequence[int], TCO: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def _silhouettes(renderer: Any, obj_ids: Sequence[int], TCO: np.ndarray, K: np.ndarray,
+                 size: tuple[int, int]) -> np.ndarray:
     if len(obj_ids) == 0:
         return np.zeros((0, *size), dtype=bool)
     return renderer.render([int(i) for i in obj_ids], TCO, K, size, depth_only=True).mask

@@ -39,6 +39,7 @@ from cosy_lite.models.detector import detect
 from cosy_lite.models.initial_pose import initial_pose_from_boxes
 from cosy_lite.models.render_and_compare import iterate_poses
 
+
 class SetupError(ValueError):
     """A predictor that cannot be built or run as asked (missing model, objects not covered); the
     message names the file."""
@@ -91,11 +92,13 @@ class PoseEstimates:
 
 
 def valid_poses(TCO: Tensor, rotation_tol: float = 1e-3, min_depth: float = MIN_DEPTH) -> Tensor:
-    """``[N]`` bool: ``TCO [N,4,4]`` finite, ``R`` orthonormal with det +1 (within ``rotation_tol``), z >= ``min_depth`` m."""
+    """``[N]`` bool: ``TCO [N,4,4]`` finite, ``R`` orthonormal with det +1 (within ``rotation_tol``),
+    z >= ``min_depth`` (m)."""
     TCO = TCO.double()
     finite = torch.isfinite(TCO).all(dim=(1, 2))
     R = torch.where(finite[:, None, None], TCO[:, :3, :3], torch.eye(3, dtype=TCO.dtype, device=TCO.device))
-    ortho = (R @ R.transpose(1, 2) - torch.eye(3, dtype=TCO.dtype, device=TCO.device)).abs().amax(dim=(1, 2)) <= rotation_tol
+    eye = torch.eye(3, dtype=TCO.dtype, device=TCO.device)
+    ortho = (R @ R.transpose(1, 2) - eye).abs().amax(dim=(1, 2)) <= rotation_tol
     det = (torch.linalg.det(R) - 1.0).abs() <= rotation_tol
     return finite & ortho & det & (TCO[:, 2, 3].nan_to_num(nan=-1.0) >= min_depth)
 
@@ -128,7 +131,8 @@ class ObjectModels:
     def __post_init__(self) -> None:
         self.models_dir = Path(self.models_dir)
         if not (self.models_dir / "models_info.json").is_file():
-            raise FileNotFoundError(f"{self.models_dir / 'models_info.json'}: not found (a BOP models/ folder is needed)")
+            raise FileNotFoundError(f"{self.models_dir / 'models_info.json'}: not found "
+                                    "(a BOP models/ folder is needed)")
 
     @cached_property
     def models_info(self) -> dict[int, io.ModelInfo]:
@@ -244,7 +248,9 @@ def _box_masks(boxes: Tensor, size: tuple[int, int]) -> np.ndarray:
     H, W = size
     masks = np.zeros((len(boxes), H, W), dtype=bool)
     for k, (x1, y1, x2, y2) in enumerate(boxes.double().tolist()):
-        masks[k, max(0, int(np.floor(y1))):max(0, int(np.ceil(y2))), max(0, int(np.floor(x1))):max(0, int(np.ceil(x2)))] = True
+        r0, r1 = max(0, int(np.floor(y1))), max(0, int(np.ceil(y2)))
+        c0, c1 = max(0, int(np.floor(x1))), max(0, int(np.ceil(x2)))
+        masks[k, r0:r1, c0:c1] = True
     return masks
 
 
@@ -420,8 +426,8 @@ class Predictor:
         valid = valid_poses(TCO)
         if not valid.all():
             bad = (~valid).nonzero().flatten().tolist()
-            warnings.warn(f"Predictor: invalid poses (NaN/inf, not a rotation or behind the camera) of detections {bad} "
-                          f"(obj_ids {det.obj_ids[bad].tolist()}); flagged valid=False", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"Predictor: invalid poses (NaN/inf, not a rotation or behind the camera) of "
+                          f"detections {bad} (obj_ids {det.obj_ids[bad].tolist()}); flagged valid=False", RuntimeWarning, stacklevel=2)
         return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
                              TCO_coarse, self._timings(clock, t_start), icp_results)
 
@@ -433,7 +439,8 @@ class Predictor:
         rows = self.objects.index(det.obj_ids)
         ids = det.obj_ids.tolist()
         image = self._image_tensor(rgb)  # the image is converted once; each object's crop reads it
-        images = image.expand(N, -1, -1, -1).contiguous()  # one copy per object, once (roi_align would copy a view each call)
+        # One copy per object, once (roi_align would copy an expanded view in every iteration).
+        images = image.expand(N, -1, -1, -1).contiguous()
         K_b = K.to(self.device, torch.float32)[None].expand(N, 3, 3).contiguous()
         points = self.objects.points[rows.to(self.device)]
         TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
