@@ -172,7 +172,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     estimates: list[PoseEstimate] = []
     summary = RunSummary(csv_path, len(keys), 0, 0, 0, 0.0, timings=dict.fromkeys(TIMING_KEYS, 0.0))
     t_run = time.perf_counter()
-    bar = tqdm(keys, desc=f"infer {dataset.name}/{split}", unit="img", disable=not progress)
+    bar = tqdm(keys, desc=f"infer {dataset.name}/{split}", unit="img", disable=None if progress else True)
     for k, (scene_id, im_id) in enumerate(bar):
         rec = dataset.image(split_folder, scene_id, im_id)
         rgb = dataset.load_rgb(rec)
