@@ -9,6 +9,7 @@ Multi-GPU / multi-node: ``torchrun --nproc_per_node N train.py ...`` (the same s
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -27,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     ap.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. loop.steps=200 net.backbone=resnet18")
     args = ap.parse_args(argv)
+    # Waiting OpenMP threads sleep instead of spinning (read when torch loads): on CPUs shared with
+    # other jobs spinning threads made the networks 3-8x slower (measured for infer.py).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
     from cosy_lite.bop.validate import check_dataset, report
     from cosy_lite.synth.command import default_data_root
