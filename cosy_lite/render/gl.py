@@ -68,6 +68,9 @@ class EglContext:
                 "(e.g. DataLoader(multiprocessing_context='spawn')) or render only in the workers."
             )
         use_egl()
+        # torchvision must be loaded before Mesa's EGL: importing it after the first render crashed the
+        # process (its LLVM clashed with llvmpipe's; measured here). It is a dependency anyway.
+        import torchvision  # noqa: F401
         from pyrender.platforms import egl
 
         if device_index is None:
