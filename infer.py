@@ -1,12 +1,14 @@
 """Estimate 6D poses on a BOP test split and write the BOP19 submission CSV: ``python infer.py --dataset ...``.
 
-Thin wrapper: parse, load the checkpoints (:meth:`cosy_lite.inference.predictor.Predictor.from_checkpoints`),
+Thin wrapper: parse, load the checkpoints (:meth:`cosy_lite.inference.predictor.Predictor.from_checkpoints`)
+or the exported ONNX networks (``--backend onnx``: :meth:`~cosy_lite.inference.predictor.Predictor.from_onnx`),
 hand over to :func:`cosy_lite.inference.bop_run.run_on_split` (ViVo targets, CSV
-``METHOD_DATASET-SPLIT.csv``, overlays, results checker). Example::
+``METHOD_DATASET-SPLIT.csv``, overlays, results checker). Examples::
 
     python infer.py --dataset ycbv-synth --detector runs/ycbv-synth-detector/checkpoint.pt \\
         --coarse runs/ycbv-synth-coarse/checkpoint.pt --refiner runs/ycbv-synth-refiner/checkpoint.pt \\
         --out results/ --vis 8
+    python infer.py --dataset ycbv-synth --backend onnx --models models/ --threads 2 --out results/
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
     ap.add_argument("--split", default="test", help="test split (default: test)")
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
-    ap.add_argument("--coarse", type=Path, required=True, metavar="CKPT", help="coarse pose checkpoint")
+    ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
     ap.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
@@ -33,11 +35,40 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--method", default="cosylite", help="method name of the CSV file (no '_')")
     ap.add_argument("--vis", type=int, default=0, metavar="N", help="write overlay PNGs for the first N images")
     ap.add_argument("--limit-images", type=int, default=None, metavar="N", help="only the first N target images")
-    ap.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
-                    help="pose networks' arithmetic: fp32, or bf16 autocast (faster on CPUs with AVX512-BF16)")
+    ap.add_argument("--backend", default="torch", choices=["torch", "onnx"],
+                    help="torch: the checkpoints; onnx: the exported networks of --models in onnxruntime (CPU)")
+    ap.add_argument("--models", type=Path, default=None, metavar="DIR",
+                    help="export folder of 'cosy-lite export' (--backend onnx): manifest.json + .onnx files")
+    ap.add_argument("--threads", type=int, default=None, metavar="N",
+                    help="CPU threads of the networks (torch and onnxruntime; default: their own)")
+    ap.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available; onnx: cpu)")
+    ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "int8"],
+                    help="pose networks' arithmetic: fp32; bf16 autocast (torch, faster on CPUs with AVX512-BF16); "
+                         "int8 (onnx, exported with --quantize int8)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     return ap
+
+
+# backend -> arguments that only it takes (anything given there for the other backend is an error)
+BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector"), "onnx": ("models",)}
+PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
+
+
+def _backend_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the combination of --backend and the other arguments (None: nothing)."""
+    other = "onnx" if args.backend == "torch" else "torch"
+    given = [f"--{k}" for k in BACKEND_ONLY[other] if getattr(args, k) is not None]
+    if given:
+        return f"{' '.join(given)} not used with --backend {args.backend}"
+    if args.precision not in PRECISIONS[args.backend]:
+        return f"--precision {args.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
+    if args.backend == "onnx":
+        return None if args.models is not None else "--backend onnx needs --models DIR (a 'cosy-lite export' folder)"
+    if args.coarse is None:
+        return "give --coarse CKPT (or --backend onnx --models DIR)"
+    if args.detector is None and args.detections is None:
+        return "give --detector CKPT or --detections oracle|FILE.json"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.results import results_filename
     from cosy_lite.errors import BopFormatError
+    from cosy_lite.export.manifest import OnnxModelError
     from cosy_lite.inference.bop_run import run_on_split
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
@@ -55,8 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     from cosy_lite.train.checkpoint import CheckpointError
 
     use_egl()
-    if args.detector is None and args.detections is None:
-        print("error: give --detector CKPT or --detections oracle|FILE.json", file=sys.stderr)
+    problem = _backend_problem(args)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     method = args.method.replace("_", "")
     if method != args.method:
@@ -70,16 +103,28 @@ def main(argv: list[str] | None = None) -> int:
     try:
         import torch
 
-        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+        if args.threads is not None:
+            torch.set_num_threads(args.threads)
         dataset = BopDataset(root)
-        predictor = Predictor.from_checkpoints(
-            detector=args.detector if args.detections is None else None, coarse=args.coarse, refiner=args.refiner,
-            dataset=dataset, device=device, n_refiner_iterations=args.n_refiner_iters if args.refiner else 0,
-            icp=args.icp, precision=args.precision)
+        if args.backend == "onnx":
+            predictor = Predictor.from_onnx(
+                args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
+                threads=args.threads, precision=args.precision, detector=args.detections is None)
+            if args.detections is None and predictor.detector is None:
+                raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
+                                 "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
+            detector_path = predictor.detector.path if predictor.detector is not None else None
+        else:
+            device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+            predictor = Predictor.from_checkpoints(
+                detector=args.detector if args.detections is None else None, coarse=args.coarse,
+                refiner=args.refiner, dataset=dataset, device=device,
+                n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
+                precision=args.precision)
+            detector_path = args.detector if args.detections is None else None
         summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
-                               args.limit_images, progress=not args.no_progress,
-                               detector_path=args.detector if args.detections is None else None)
-    except (CheckpointError, BopFormatError, FileNotFoundError, SetupError) as e:
+                               args.limit_images, progress=not args.no_progress, detector_path=detector_path)
+    except (CheckpointError, BopFormatError, FileNotFoundError, SetupError, OnnxModelError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for p in summary.problems:

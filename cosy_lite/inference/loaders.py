@@ -5,13 +5,18 @@ Pose networks: :func:`load_pose_model` (``kind`` "coarse" or "refiner", written 
 Detector: :func:`load_detector` (``kind`` "detector", read by
 :func:`cosy_lite.train.detector_task.load_detector`). Every problem raises
 :class:`~cosy_lite.train.checkpoint.CheckpointError` naming the file.
+
+Exported networks (``cosy-lite export``): :func:`load_onnx_models` reads an export folder
+(``manifest.json`` + ``.onnx`` files) into onnxruntime sessions with the same interfaces
+(:class:`PoseModel` whose ``net`` is an :class:`~cosy_lite.export.onnx_models.OnnxPoseNet`); its
+problems raise :class:`~cosy_lite.export.manifest.OnnxModelError` naming the file and the field.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from torch import nn
@@ -25,11 +30,14 @@ Size = tuple[int, int]
 class PoseModel:
     """A pose network (coarse or refiner) and what it was trained for.
 
-    net: the :class:`~cosy_lite.models.pose_net.PoseNet` (eval mode); crop_resolution: (h, w) px of
-    its input crops; obj_ids: objects it was trained on; path: the checkpoint (None if built in code).
+    net: the :class:`~cosy_lite.models.pose_net.PoseNet` (eval mode), or any callable
+    ``[B,6,h,w] -> [B,9]`` tensor function such as an
+    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet`; crop_resolution: (h, w) px of its input
+    crops; obj_ids: objects it was trained on; path: the checkpoint or ``.onnx`` file (None if
+    built in code).
     """
 
-    net: nn.Module
+    net: nn.Module | Callable[[torch.Tensor], torch.Tensor]
     kind: str
     crop_resolution: Size
     obj_ids: list[int]
@@ -75,3 +83,59 @@ def load_detector(path: str | Path, device: str | torch.device = "cpu") -> nn.Mo
 
     model, _ = load(path, device)
     return model
+
+
+# precision -> suffix of the manifest entry names of the pose networks
+ONNX_PRECISIONS: dict[str, str] = {"fp32": "", "int8": ".int8"}
+
+
+@dataclass
+class OnnxModels:
+    """The networks of an export folder in onnxruntime; detector/refiner None when not exported
+    (or not asked for)."""
+
+    coarse: PoseModel
+    refiner: PoseModel | None
+    detector: Any  # OnnxDetector | None
+    manifest: Any  # cosy_lite.export.manifest.Manifest
+
+
+def load_onnx_models(root: str | Path, threads: int | None = None, precision: str = "fp32",
+                     detector: bool = True, spinning: bool = False) -> OnnxModels:
+    """The networks of the export folder ``root`` (``cosy-lite export --out root``).
+
+    Args:
+        threads: intra-op threads of each session (None: onnxruntime's default).
+        precision: "fp32", or "int8" for the quantised pose networks (``--quantize int8`` exports).
+        detector: load ``detector.onnx`` when the folder has one.
+    Raises OnnxModelError naming the file and field: no manifest, a listed file missing, truncated
+    or replaced, not loadable, or its metadata not matching the manifest (kind, obj_ids, crop size,
+    6 input channels); no coarse model.
+    """
+    from cosy_lite.export.manifest import Manifest, OnnxModelError
+    from cosy_lite.export.onnx_models import OnnxDetector, OnnxPoseNet
+
+    if precision not in ONNX_PRECISIONS:
+        raise ValueError(f"precision must be one of {sorted(ONNX_PRECISIONS)} for ONNX models, got {precision!r}")
+    manifest = Manifest.read(root)
+    pose: dict[str, PoseModel | None] = {}
+    for role in ("coarse", "refiner"):
+        name = role + ONNX_PRECISIONS[precision]
+        if manifest.entry(name) is None:
+            if manifest.entry(role) is not None:  # fp32 exported, the asked precision not
+                raise OnnxModelError(manifest.path, f"models.{name}", f"not exported (found models.{role} only): "
+                                     f"export with --quantize {precision}, or use precision fp32")
+            pose[role] = None
+            continue
+        entry = manifest.models[name]
+        if entry.kind != role:
+            raise OnnxModelError(manifest.path, f"models.{name}.kind", f"{entry.kind!r}, expected {role!r}")
+        net = OnnxPoseNet(manifest.file(name), threads, role, entry, name, spinning)
+        pose[role] = PoseModel(net, role, net.crop_resolution, net.obj_ids, net.path)
+    if pose["coarse"] is None:
+        raise OnnxModelError(manifest.path, "models.coarse", "missing: the export has no coarse model "
+                             f"(it has {sorted(manifest.models)})")
+    det = None
+    if detector and manifest.entry("detector") is not None:
+        det = OnnxDetector(manifest.file("detector"), threads, manifest.models["detector"], "detector", spinning)
+    return OnnxModels(pose["coarse"], pose["refiner"], det, manifest)  # type: ignore[arg-type]

@@ -10,7 +10,9 @@ point-to-plane ICP against the measured depth inside each detection mask
 
 Robot users: ``Predictor.from_checkpoints(coarse=..., refiner=..., models_dir=...)`` then
 ``predict(rgb, K)``; no dataset needed, only the BOP ``models/`` folder of the objects (PLY in mm
-+ ``models_info.json``). Poses are object-to-camera in metres.
++ ``models_info.json``). Poses are object-to-camera in metres. Exported networks (``cosy-lite
+export``): ``Predictor.from_onnx(export_dir, models_dir=...)`` runs the same pipeline with the
+three networks in onnxruntime (crops, rendering, pose updates and ICP unchanged).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -187,8 +189,15 @@ class _TimedRenderer:
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
 
 
-def _timed_net(net: nn.Module, clock: _Clock, channels_last: bool, precision: str):
-    """``net`` as a function of ``[B,6,h,w]`` float32 -> ``[B,9]`` float32, timed under "networks"."""
+def _timed_net(net: nn.Module | Callable[[Tensor], Tensor], clock: _Clock, channels_last: bool, precision: str):
+    """``net`` as a function of ``[B,6,h,w]`` float32 -> ``[B,9]`` float32, timed under "networks".
+    A ``net`` that is not a torch module (an onnxruntime session) is only timed."""
+    if not isinstance(net, nn.Module):
+        def run_plain(x: Tensor) -> Tensor:
+            with clock("networks"):
+                return net(x).float()
+
+        return run_plain
     dtype = PRECISIONS[precision]
     memory_format = torch.channels_last if channels_last else torch.contiguous_format
 
@@ -254,16 +263,41 @@ def _box_masks(boxes: Tensor, size: tuple[int, int]) -> np.ndarray:
     return masks
 
 
+def _object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
+    """The objects' BOP ``models/`` folder: ``models_dir`` or ``dataset``'s (exactly one given)."""
+    from cosy_lite.bop.dataset import BopDataset
+
+    if (models_dir is None) == (dataset is None):
+        raise SetupError("give exactly one of models_dir (a BOP models/ folder) and dataset")
+    if dataset is not None:
+        ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
+        return ObjectModels(ds.models_dir)
+    return ObjectModels(Path(models_dir))
+
+
+def _objects_renderer(models: ObjectModels, ids: list[int], n_points: int | None, icp: bool) -> tuple[Any, Any, Any]:
+    """(ObjectTable of ``ids``, a renderer of ``models``, ICP symmetry sets or None)."""
+    from cosy_lite.geometry.symmetries import symmetry_transforms
+    from cosy_lite.models.object_table import ObjectTable
+    from cosy_lite.render.renderer import PyrenderRenderer
+
+    kwargs = {} if n_points is None else {"n_points": n_points}
+    objects = ObjectTable.from_dataset(models, ids, **kwargs)  # type: ignore[arg-type]
+    syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
+    return objects, PyrenderRenderer(models_dir=models.models_dir), syms
+
+
 class Predictor:
     """Detector -> coarse -> refiner -> optional depth ICP, for single images.
 
     Args:
-        coarse, refiner: the pose networks (:class:`~cosy_lite.inference.loaders.PoseModel`);
-            refiner None: coarse only.
+        coarse, refiner: the pose networks (:class:`~cosy_lite.inference.loaders.PoseModel`; torch
+            modules, or onnxruntime sessions from :meth:`from_onnx`); refiner None: coarse only.
         objects: :class:`~cosy_lite.models.object_table.ObjectTable` of the objects to estimate
             (model points for the crops, diameters for the starting depth).
         renderer: batched renderer of the same objects (:class:`~cosy_lite.render.renderer.PyrenderRenderer`).
-        detector: :class:`~cosy_lite.models.detector.Detector` or None (detections then have to be given).
+        detector: :class:`~cosy_lite.models.detector.Detector`, an
+            :class:`~cosy_lite.export.onnx_models.OnnxDetector`, or None (detections then have to be given).
         n_refiner_iterations: refiner iterations after the coarse one (CosyPose: 4).
         icp: run depth ICP when a depth image is given; icp_config: its settings.
         icp_symmetries: obj_id -> symmetry set [S,4,4] (m) for ICP (None: no symmetry handling).
@@ -276,7 +310,7 @@ class Predictor:
     """
 
     def __init__(self, coarse: PoseModel, refiner: PoseModel | None, objects: Any, renderer: Any,
-                 detector: nn.Module | None = None, n_refiner_iterations: int = 4, icp: bool = False,
+                 detector: Any = None, n_refiner_iterations: int = 4, icp: bool = False,
                  icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
                  device: str | torch.device = "cpu", batch_size: int = 32, channels_last: bool = True,
                  precision: str = "fp32", fuse_bn: bool = True):
@@ -295,12 +329,13 @@ class Predictor:
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.channels_last, self.precision = bool(channels_last), precision
-        if detector is not None:
+        if isinstance(detector, nn.Module):  # else an onnxruntime detector (OnnxDetector)
             detector.to(self.device).eval()
-        self._nets: dict[str, nn.Module] = {}
+        self._nets: dict[str, nn.Module | Callable[[Tensor], Tensor]] = {}
         for role, m in (("coarse", coarse), ("refiner", refiner)):
             if m is not None:
-                self._nets[role] = inference_net(m.net, self.device, self.channels_last, fuse_bn)
+                self._nets[role] = (inference_net(m.net, self.device, self.channels_last, fuse_bn)
+                                    if isinstance(m.net, nn.Module) else m.net)
                 missing = sorted(set(self.objects.obj_ids) - set(m.obj_ids))
                 if missing:
                     raise SetupError(f"{m.describe()}: the {m.kind} model was not trained on obj_ids {missing} "
@@ -329,20 +364,9 @@ class Predictor:
         Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
         a checkpoint does not cover the objects.
         """
-        from cosy_lite.bop.dataset import BopDataset
-        from cosy_lite.geometry.symmetries import symmetry_transforms
-        from cosy_lite.models.object_table import ObjectTable
-        from cosy_lite.render.renderer import PyrenderRenderer
-
         if coarse is None:
             raise SetupError("a coarse checkpoint is needed (coarse=...)")
-        if (models_dir is None) == (dataset is None):
-            raise SetupError("give exactly one of models_dir (a BOP models/ folder) and dataset")
-        if dataset is not None:
-            ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
-            models = ObjectModels(ds.models_dir)
-        else:
-            models = ObjectModels(Path(models_dir))
+        models = _object_models(models_dir, dataset)
         coarse_model = load_pose_model(coarse, "coarse", device)
         refiner_model = None if refiner is None else load_pose_model(refiner, "refiner", device)
         if refiner_model is None:
@@ -351,13 +375,59 @@ class Predictor:
         unknown = sorted(set(ids) - set(models.obj_ids))
         if unknown:
             raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
-        kwargs = {} if n_points is None else {"n_points": n_points}
-        objects = ObjectTable.from_dataset(models, ids, **kwargs)  # type: ignore[arg-type]
+        objects, renderer, syms = _objects_renderer(models, ids, n_points, icp)
         det = None if detector is None else load_detector(detector, device)
-        syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
-        renderer = PyrenderRenderer(models_dir=models.models_dir)
         return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
                    syms, device, precision=precision)
+
+    @classmethod
+    def from_onnx(
+        cls, export_dir: str | Path, models_dir: str | Path | None = None, dataset: Any = None,
+        n_refiner_iterations: int = 4, icp: bool = False, icp_config: IcpConfig | None = None,
+        obj_ids: Sequence[int] | None = None, n_points: int | None = None, threads: int | None = None,
+        precision: str = "fp32", detector: bool = True, spinning: bool = False,
+    ) -> "Predictor":
+        """The pipeline with the exported networks of ``export_dir`` (``cosy-lite export --out``)
+        in onnxruntime on the CPU; crops, rendering, pose updates and ICP as in :meth:`from_checkpoints`.
+
+        Args:
+            export_dir: folder with ``manifest.json``, ``coarse.onnx`` [, ``refiner.onnx``,
+                ``detector.onnx``, ``*.int8.onnx``]; no checkpoint is needed (object ids, crop
+                sizes and the label map are in the files' metadata).
+            models_dir / dataset: the objects' BOP ``models/`` folder, or a dataset (as
+                :meth:`from_checkpoints`).
+            threads: intra-op threads per onnxruntime session (None: its default); torch's own
+                threads (crops) are left as they are.
+            precision: "fp32", or "int8" (the dynamically quantised pose networks).
+            detector: use ``detector.onnx`` when the export has one (False: detections are given).
+            spinning: let idle onnxruntime threads spin (faster on a quiet machine, much slower on
+                a shared one).
+        Raises OnnxModelError naming the file and field (missing / truncated / mismatched files,
+        see :func:`~cosy_lite.inference.loaders.load_onnx_models`), SetupError when the exported
+        models or the object models do not cover the objects.
+        """
+        from cosy_lite.export.manifest import OnnxModelError
+        from cosy_lite.inference.loaders import load_onnx_models
+
+        onnx = load_onnx_models(export_dir, threads, precision, detector, spinning)
+        models = _object_models(models_dir, dataset)
+        coarse_name = "coarse" + ("" if precision == "fp32" else f".{precision}")
+        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(onnx.coarse.obj_ids)
+        unknown = sorted(set(ids) - set(models.obj_ids))
+        if unknown:
+            field_ = "argument obj_ids" if obj_ids else f"models.{coarse_name}.obj_ids"
+            raise OnnxModelError(onnx.manifest.path, field_, f"obj_ids {unknown} have no model in "
+                                 f"{models.models_dir / 'models_info.json'} (it has {models.obj_ids})")
+        if onnx.refiner is None:
+            n_refiner_iterations = 0
+        objects, renderer, syms = _objects_renderer(models, ids, n_points, icp)
+        return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, n_refiner_iterations, icp,
+                   icp_config, syms, "cpu", precision="fp32")
+
+    @property
+    def backend(self) -> str:
+        """"torch" or "onnx" (networks in onnxruntime)."""
+        return "torch" if all(isinstance(n, nn.Module) for n in self._nets.values()) else "onnx"
 
     @property
     def obj_ids(self) -> list[int]:
@@ -377,7 +447,10 @@ class Predictor:
             raise SetupError("no detector loaded: load one (detector=CKPT) or pass detections to predict()")
         clock = _Clock(self.device)
         with clock("detection"), _flush_denormals():
-            det = detect(self.detector, [self._image_tensor(_as_rgb(rgb))[0]])[0].to("cpu")
+            if isinstance(self.detector, nn.Module):
+                det = detect(self.detector, [self._image_tensor(_as_rgb(rgb))[0]])[0].to("cpu")
+            else:  # onnxruntime (OnnxDetector): numpy in, Detections out
+                det = self.detector.detect(_as_rgb(rgb))
         order = torch.argsort(det.scores, descending=True, stable=True)
         det = det.select(order)
         det.time_s = clock.seconds["detection"]

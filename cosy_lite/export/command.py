@@ -1,0 +1,38 @@
+"""``cosy-lite export``: checkpoints -> ONNX files + ``manifest.json`` (:func:`~cosy_lite.export.onnx_export.export_models`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint -> detector.onnx")
+    p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint -> coarse.onnx")
+    p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint -> refiner.onnx")
+    p.add_argument("--out", type=Path, default=Path("models"), metavar="DIR", help="export folder (default models/)")
+    p.add_argument("--quantize", default=None, choices=["int8"],
+                   help="also write dynamically quantised pose networks (coarse.int8.onnx, refiner.int8.onnx)")
+    p.add_argument("--opset", type=int, default=17, help="ONNX opset (>= 11; default 17)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from cosy_lite.export.onnx_export import describe, export_models
+    from cosy_lite.train.checkpoint import CheckpointError
+
+    if args.detector is None and args.coarse is None and args.refiner is None:
+        print("error: give at least one of --detector, --coarse, --refiner", file=sys.stderr)
+        return 2
+    if args.opset < 11:
+        print(f"error: --opset {args.opset}: Mask R-CNN needs >= 11", file=sys.stderr)
+        return 2
+    try:
+        manifest = export_models(args.out, args.detector, args.coarse, args.refiner, args.quantize, args.opset)
+    except CheckpointError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    for line in describe(manifest):
+        print(line)
+    print(f"manifest: {manifest.path}")
+    return 0

@@ -1,0 +1,170 @@
+"""Export the detector, coarse and refiner networks to ONNX with self-describing metadata.
+
+- Pose networks: :class:`~cosy_lite.models.pose_net.PoseNet` traced as it is, ``images
+  [batch, 6, h, w]`` float32 in [0, 1] (crop, rendering) -> ``delta [batch, 9]``; dynamic batch,
+  fixed crop size (the one it was trained at). After export the graph runs in onnxruntime on a
+  random batch and its largest difference to torch is recorded (``check``).
+- Detector: torchvision's Mask R-CNN (:attr:`Detector.net`) with its pre- and post-processing
+  (resize, normalisation, NMS, mask pasting): ``image [3, height, width]`` float32 in [0, 1] ->
+  ``boxes [n, 4]`` (xyxy px), ``labels [n]`` int64 (1..; obj_id = obj_ids[label - 1]),
+  ``scores [n]``, ``masks [n, 1, height, width]`` (probabilities). The legacy TorchScript-based
+  exporter is used (the dynamo exporter fails on torchvision's NMS).
+
+Each file gets ``metadata_props`` (:data:`~cosy_lite.export.manifest.META_KEYS`) and passes
+``onnx.checker``; :func:`export_models` writes the folder and its ``manifest.json``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from cosy_lite.export.manifest import POSE_INPUT_CHANNELS, Manifest, ModelEntry, file_digest, metadata_of
+
+OPSET = 17  # >= 11 for Mask R-CNN (NMS, RoiAlign); 17 is what the legacy exporter knows well
+POSE_INPUT, POSE_OUTPUT = "images", "delta"
+DETECTOR_INPUT = "image"
+DETECTOR_OUTPUTS = ("boxes", "labels", "scores", "masks")
+CHECK_BATCH = 2
+
+
+def _write_metadata(path: Path, meta: dict[str, str]) -> None:
+    """Replace ``path``'s ``metadata_props`` with ``meta`` and validate it with ``onnx.checker``."""
+    import onnx
+
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for k, v in sorted(meta.items()):
+        model.metadata_props.add(key=k, value=v)
+    model.producer_name = "cosy_lite"
+    onnx.save(model, str(path))
+    onnx.checker.check_model(str(path))
+
+
+def _finish(path: Path, entry: ModelEntry, config: dict[str, Any]) -> ModelEntry:
+    _write_metadata(path, metadata_of(entry, config))
+    entry.bytes, entry.sha256 = file_digest(path)
+    return entry
+
+
+def _legacy_export(module: nn.Module, args: tuple, path: Path, **kwargs: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with warnings.catch_warnings():  # tracer warnings about Python-side shape arithmetic, deprecation notes
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, args, str(path), dynamo=False, opset_version=kwargs.pop("opset", OPSET),
+                          do_constant_folding=True, **kwargs)
+
+
+def export_pose_net(net: nn.Module, path: str | Path, kind: str, crop_resolution: Sequence[int],
+                    obj_ids: Sequence[int], config: dict[str, Any] | None = None, source: str = "",
+                    opset: int = OPSET, seed: int = 0) -> ModelEntry:
+    """Write ``net`` (a PoseNet, eval mode is set on a copy) to ``path``; returns its manifest entry.
+
+    Args:
+        kind: "coarse" or "refiner"; crop_resolution: (h, w) px of its input crops;
+        obj_ids: objects it was trained on; config: its PoseNetConfig as a dict (stored as metadata);
+        source: where the weights came from (a checkpoint path).
+    ``check`` of the entry: max |torch - onnxruntime| on a random batch of :data:`CHECK_BATCH`.
+    """
+    path = Path(path)
+    h, w = (int(v) for v in crop_resolution)
+    module = copy.deepcopy(net).float().cpu().eval()
+    x = torch.rand(CHECK_BATCH, POSE_INPUT_CHANNELS, h, w, generator=torch.Generator().manual_seed(seed))
+    _legacy_export(module, (x,), path, opset=opset, input_names=[POSE_INPUT], output_names=[POSE_OUTPUT],
+                   dynamic_axes={POSE_INPUT: {0: "batch"}, POSE_OUTPUT: {0: "batch"}})
+    entry = ModelEntry(file=path.name, kind=kind, obj_ids=sorted(int(i) for i in obj_ids), input_name=POSE_INPUT,
+                       input_shape=["batch", POSE_INPUT_CHANNELS, h, w], crop_resolution=[h, w], opset=opset,
+                       source=str(source))
+    entry = _finish(path, entry, dict(config or {}))
+    with torch.no_grad():
+        ref = module(x).numpy()
+    out = _run_once(path, {POSE_INPUT: x.numpy()})[0]
+    entry.check = {"batch": CHECK_BATCH, "max_abs_diff": float(np.abs(out - ref).max()),
+                   "max_abs_output": float(np.abs(ref).max())}
+    return entry
+
+
+def export_detector(detector: nn.Module, path: str | Path, source: str = "", opset: int = OPSET,
+                    seed: int = 0) -> ModelEntry:
+    """Write a :class:`~cosy_lite.models.detector.Detector` (its Mask R-CNN with pre/post-processing)
+    to ``path``; returns its manifest entry. The label map and config go into the metadata."""
+    path = Path(path)
+    cfg = detector.config
+    net = copy.deepcopy(detector.net).float().cpu().eval()
+    image = torch.rand(3, int(cfg.min_size), int(cfg.max_size), generator=torch.Generator().manual_seed(seed))
+    _legacy_export(net, ([image],), path, opset=opset, input_names=[DETECTOR_INPUT], output_names=list(DETECTOR_OUTPUTS),
+                   dynamic_axes={DETECTOR_INPUT: {1: "height", 2: "width"}, "boxes": {0: "n"}, "labels": {0: "n"},
+                                 "scores": {0: "n"}, "masks": {0: "n", 2: "height", 3: "width"}})
+    entry = ModelEntry(file=path.name, kind="detector", obj_ids=list(detector.label_map.obj_ids),
+                       input_name=DETECTOR_INPUT, input_shape=[3, "height", "width"], opset=opset, source=str(source))
+    return _finish(path, entry, asdict(cfg))
+
+
+def _run_once(path: Path, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return session.run(None, feeds)
+
+
+def _pose_net_from_checkpoint(path: Path, kind: str) -> tuple[nn.Module, tuple[int, int], list[int], dict[str, Any]]:
+    from cosy_lite.inference.loaders import load_pose_model
+    from cosy_lite.train.checkpoint import load_checkpoint
+
+    model = load_pose_model(path, kind)
+    ckpt = load_checkpoint(path, kind=kind)
+    config = ckpt.meta.get("net", ckpt.config.get("net", {}))
+    return model.net, model.crop_resolution, model.obj_ids, dict(config)
+
+
+def export_models(out_dir: str | Path, detector: str | Path | None = None, coarse: str | Path | None = None,
+                  refiner: str | Path | None = None, quantize: str | None = None, opset: int = OPSET) -> Manifest:
+    """Export the given checkpoints into ``out_dir`` (``detector.onnx``, ``coarse.onnx``,
+    ``refiner.onnx``; with ``quantize="int8"`` also ``coarse.int8.onnx``, ``refiner.int8.onnx``)
+    and write ``manifest.json``. At least one checkpoint is needed.
+
+    Raises CheckpointError naming a checkpoint that is missing or of the wrong kind.
+    """
+    from cosy_lite.export.quantize import QUANTIZERS
+
+    if detector is None and coarse is None and refiner is None:
+        raise ValueError("nothing to export: give at least one of detector, coarse, refiner")
+    if quantize is not None and quantize not in QUANTIZERS:
+        raise ValueError(f"quantize must be one of {sorted(QUANTIZERS)}, got {quantize!r}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    entries: dict[str, ModelEntry] = {}
+    if detector is not None:
+        from cosy_lite.inference.loaders import load_detector
+
+        entries["detector"] = export_detector(load_detector(detector), out_dir / "detector.onnx", str(detector), opset)
+    for kind, ckpt in (("coarse", coarse), ("refiner", refiner)):
+        if ckpt is None:
+            continue
+        net, crop, obj_ids, config = _pose_net_from_checkpoint(Path(ckpt), kind)
+        entries[kind] = export_pose_net(net, out_dir / f"{kind}.onnx", kind, crop, obj_ids, config, str(ckpt), opset)
+        if quantize is not None:
+            entries[f"{kind}.{quantize}"] = QUANTIZERS[quantize](out_dir / f"{kind}.onnx",
+                                                                 out_dir / f"{kind}.{quantize}.onnx", entries[kind],
+                                                                 config)
+    manifest = Manifest(out_dir, entries)
+    manifest.write()
+    return manifest
+
+
+def describe(manifest: Manifest) -> list[str]:
+    """One line per exported file (for the command's output)."""
+    lines = []
+    for name, e in sorted(manifest.models.items()):
+        extra = f", crop {e.crop_resolution[0]}x{e.crop_resolution[1]}" if e.crop_resolution else ""
+        check = f", {json.dumps(e.check)}" if e.check else ""
+        lines.append(f"{manifest.root / e.file}: {name} ({e.bytes / 1e6:.1f} MB, obj_ids {e.obj_ids}{extra}{check})")
+    return lines

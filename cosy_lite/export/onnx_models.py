@@ -1,0 +1,218 @@
+"""onnxruntime sessions of the exported networks, called like the torch modules the pipeline uses.
+
+- :class:`OnnxPoseNet`: ``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` (numpy in ->
+  numpy out with :meth:`~OnnxPoseNet.run`; torch tensors in -> tensor out when called, so it
+  drops into :func:`~cosy_lite.models.render_and_compare.iterate_poses`).
+- :class:`OnnxDetector`: ``rgb [H,W,3]`` uint8 -> boxes, obj_ids, scores, masks (numpy,
+  :meth:`~OnnxDetector.run`) or :class:`~cosy_lite.bop.detections.Detections` (:meth:`~OnnxDetector.detect`).
+
+The sessions themselves need only numpy and onnxruntime (torch is imported only to wrap tensors).
+Sessions run with every graph optimisation on, ``threads`` intra-op threads, denormals flushed to
+zero, and by default idle threads that sleep instead of spinning (spinning threads made networks
+several times slower on CPUs shared with other jobs, as OpenMP's did for torch). Each file is
+checked against its own metadata and, when given, its manifest entry: kind, obj_ids, crop size,
+input layout; every mismatch raises :class:`~cosy_lite.export.manifest.OnnxModelError` naming
+the file and the field.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from cosy_lite.export.manifest import (
+    POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, ModelEntry, OnnxModelError, parse_json_meta,
+)
+
+PROVIDERS = ("CPUExecutionProvider",)
+MASK_THRESHOLD = 0.5  # mask probability -> bool (as cosy_lite.models.detector)
+POSE_OUTPUTS = 9
+
+
+def session_options(threads: int | None = None, spinning: bool = False) -> Any:
+    """onnxruntime ``SessionOptions``: all graph optimisations, ``threads`` intra-op threads (None:
+    onnxruntime's default, one per physical core), sequential execution, denormals as zero, idle
+    threads spinning only if ``spinning``."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    if threads is not None:
+        if int(threads) < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.add_session_config_entry("session.set_denormal_as_zero", "1")
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+    so.add_session_config_entry("session.inter_op.allow_spinning", "1" if spinning else "0")
+    so.log_severity_level = 3  # errors only
+    return so
+
+
+def open_session(path: str | Path, threads: int | None = None, spinning: bool = False,
+                 providers: Sequence[str] = PROVIDERS) -> Any:
+    """An ``InferenceSession`` of ``path``; OnnxModelError naming the file when it is missing or
+    not a loadable ONNX model (truncated, not protobuf, unsupported operators)."""
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise OnnxModelError(path, "", "ONNX file not found")
+    try:
+        return ort.InferenceSession(str(path), session_options(threads, spinning), providers=list(providers))
+    except Exception as e:  # noqa: BLE001 - onnxruntime raises its own Fail/InvalidProtobuf/... types
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise OnnxModelError(path, "", f"not a loadable ONNX model ({type(e).__name__}: {first[:300]})") from None
+
+
+def _metadata(session: Any, path: Path) -> dict[str, str]:
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    missing = [k for k in REQUIRED_META if k not in meta]
+    if missing:
+        raise OnnxModelError(path, f"metadata_props[{missing[0]}]",
+                             f"missing {missing} (not exported by cosy-lite export?)")
+    return meta
+
+
+def _check_against(path: Path, entry: ModelEntry | None, name: str, facts: dict[str, Any]) -> None:
+    """Each fact of the file (metadata key -> value) must equal the manifest entry's field."""
+    if entry is None:
+        return
+    fields = {"cosy_lite.kind": entry.kind, "cosy_lite.obj_ids": list(entry.obj_ids),
+              "cosy_lite.crop_resolution": entry.crop_resolution, "cosy_lite.quantization": entry.quantization}
+    for key, value in facts.items():
+        if key in fields and fields[key] != value:
+            raise OnnxModelError(path, f"metadata_props[{key}]", f"is {value}, but manifest.json models.{name}."
+                                 f"{key.split('.', 1)[1]} says {fields[key]} (file from another export?)")
+
+
+class OnnxPoseNet:
+    """A coarse or refiner network in onnxruntime.
+
+    Args:
+        path: the ``.onnx`` file; threads, spinning: see :func:`session_options`.
+        kind: expected kind ("coarse" | "refiner"; None: any pose network).
+        entry, name: its manifest entry and name, checked against the file's metadata.
+    Attributes: kind, obj_ids, crop_resolution (h, w), quantization, config (dict), path.
+    """
+
+    def __init__(self, path: str | Path, threads: int | None = None, kind: str | None = None,
+                 entry: ModelEntry | None = None, name: str = "", spinning: bool = False):
+        self.path = Path(path)
+        self.session = open_session(self.path, threads, spinning)
+        meta = _metadata(self.session, self.path)
+        self.kind = meta["cosy_lite.kind"]
+        wanted = (kind,) if kind else POSE_KINDS
+        if self.kind not in wanted:
+            raise OnnxModelError(self.path, "metadata_props[cosy_lite.kind]",
+                                 f"{self.kind!r}, expected {' or '.join(map(repr, wanted))}")
+        self.obj_ids = [int(i) for i in parse_json_meta(meta, "cosy_lite.obj_ids", self.path)]
+        crop = parse_json_meta(meta, "cosy_lite.crop_resolution", self.path)
+        self.crop_resolution = (int(crop[0]), int(crop[1]))
+        self.quantization = meta.get("cosy_lite.quantization", "none")
+        self.config = json.loads(meta.get("cosy_lite.config", "{}"))
+        _check_against(self.path, entry, name or self.kind, {
+            "cosy_lite.kind": self.kind, "cosy_lite.obj_ids": self.obj_ids,
+            "cosy_lite.crop_resolution": list(self.crop_resolution), "cosy_lite.quantization": self.quantization})
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        if len(inputs) != 1 or len(outputs) != 1:
+            raise OnnxModelError(self.path, "graph inputs/outputs", f"{len(inputs)} inputs and {len(outputs)} outputs, "
+                                 "expected 1 and 1 (images -> delta)")
+        shape = list(inputs[0].shape)
+        h, w = self.crop_resolution
+        if len(shape) != 4 or shape[1] != POSE_INPUT_CHANNELS or shape[2:] != [h, w]:
+            raise OnnxModelError(self.path, f"input {inputs[0].name} shape", f"{shape}, expected "
+                                 f"[batch, {POSE_INPUT_CHANNELS}, {h}, {w}] (6 channels: crop + rendering; "
+                                 f"metadata crop_resolution {h}x{w})")
+        if list(outputs[0].shape)[1:] != [POSE_OUTPUTS]:
+            raise OnnxModelError(self.path, f"output {outputs[0].name} shape",
+                                 f"{list(outputs[0].shape)}, expected [batch, {POSE_OUTPUTS}]")
+        self.input_name = inputs[0].name
+
+    def run(self, images: np.ndarray) -> np.ndarray:
+        """``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` float32."""
+        x = np.ascontiguousarray(images, dtype=np.float32)
+        if x.ndim != 4 or x.shape[1:] != (POSE_INPUT_CHANNELS, *self.crop_resolution):
+            raise ValueError(f"{self.path.name}: images must be [B,{POSE_INPUT_CHANNELS},{self.crop_resolution[0]},"
+                             f"{self.crop_resolution[1]}], got {x.shape}")
+        return self.session.run(None, {self.input_name: x})[0]
+
+    def __call__(self, images: Any) -> Any:
+        """As :meth:`run`; a torch tensor in gives a torch tensor out (on the input's device)."""
+        if isinstance(images, np.ndarray):
+            return self.run(images)
+        import torch
+
+        out = self.run(images.detach().to("cpu", torch.float32).contiguous().numpy())
+        return torch.from_numpy(out).to(images.device)
+
+    def describe(self) -> str:
+        return str(self.path)
+
+
+class OnnxDetector:
+    """The exported Mask R-CNN (pre- and post-processing inside the graph) in onnxruntime.
+
+    Args: as :class:`OnnxPoseNet`. Attributes: obj_ids (label k -> obj_ids[k - 1]), config (the
+    DetectorConfig as a dict), path.
+    """
+
+    def __init__(self, path: str | Path, threads: int | None = None, entry: ModelEntry | None = None,
+                 name: str = "detector", spinning: bool = False):
+        self.path = Path(path)
+        self.session = open_session(self.path, threads, spinning)
+        meta = _metadata(self.session, self.path)
+        kind = meta["cosy_lite.kind"]
+        if kind != "detector":
+            raise OnnxModelError(self.path, "metadata_props[cosy_lite.kind]", f"{kind!r}, expected 'detector'")
+        self.obj_ids = [int(i) for i in parse_json_meta(meta, "cosy_lite.obj_ids", self.path)]
+        self.config = json.loads(meta.get("cosy_lite.config", "{}"))
+        _check_against(self.path, entry, name, {"cosy_lite.kind": kind, "cosy_lite.obj_ids": self.obj_ids})
+        inputs = self.session.get_inputs()
+        outputs = [o.name for o in self.session.get_outputs()]
+        if len(inputs) != 1 or len(inputs[0].shape) != 3 or inputs[0].shape[0] != 3:
+            raise OnnxModelError(self.path, "graph input", f"{[(i.name, i.shape) for i in inputs]}, "
+                                 "expected one image [3, height, width]")
+        if outputs != ["boxes", "labels", "scores", "masks"]:
+            raise OnnxModelError(self.path, "graph outputs", f"{outputs}, expected ['boxes', 'labels', 'scores', 'masks']")
+        self.input_name = inputs[0].name
+        self._table = np.asarray([0, *self.obj_ids], dtype=np.int64)
+
+    @property
+    def label_map(self) -> Any:
+        """The :class:`~cosy_lite.models.detector.LabelMap` of the export (imports torchvision)."""
+        from cosy_lite.models.detector import LabelMap
+
+        return LabelMap(tuple(self.obj_ids))
+
+    def run(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``rgb [H,W,3]`` uint8 -> (boxes [N,4] float32 xyxy px, obj_ids [N] int64, scores [N]
+        float32, masks [N,H,W] bool), in the network's order (decreasing score per class)."""
+        rgb = np.asarray(rgb)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be [H,W,3] uint8, got {rgb.dtype} {rgb.shape}")
+        image = np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32) / np.float32(255.0)
+        boxes, labels, scores, masks = self.session.run(None, {self.input_name: image})
+        return (boxes.astype(np.float32, copy=False), self._table[labels.astype(np.int64)],
+                scores.astype(np.float32, copy=False), masks[:, 0] > MASK_THRESHOLD)
+
+    def detect(self, rgb: np.ndarray) -> Any:
+        """:class:`~cosy_lite.bop.detections.Detections` of ``rgb`` (``time_s``: seconds of the network)."""
+        import torch
+
+        from cosy_lite.bop.detections import Detections
+
+        t0 = time.perf_counter()
+        boxes, obj_ids, scores, masks = self.run(rgb)
+        det = Detections(torch.from_numpy(boxes), torch.from_numpy(obj_ids), torch.from_numpy(scores),
+                         torch.from_numpy(masks))
+        det.time_s = time.perf_counter() - t0
+        return det
+
+    def describe(self) -> str:
+        return str(self.path)
