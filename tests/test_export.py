@@ -133,6 +133,23 @@ def _images() -> list[np.ndarray]:
     return out
 
 
+def test_separable_mask_paste_equals_torchvision():
+    from torchvision.models.detection.roi_heads import paste_masks_in_image
+
+    from cosy_lite.export.onnx_export import paste_masks_separable
+
+    g = torch.Generator().manual_seed(0)
+    H, W = 90, 120
+    masks = torch.rand(30, 1, 28, 28, generator=g)
+    xy = torch.rand(30, 2, generator=g) * torch.tensor([W - 1.0, H - 1.0])
+    boxes = torch.cat([xy, torch.minimum(xy + torch.rand(30, 2, generator=g) * 60 + 0.2, torch.tensor([W, H]))], 1)
+    boxes[0] = torch.tensor([5.0, 6.0, 5.3, 6.2])  # below one pixel
+    ref, out = paste_masks_in_image(masks, boxes, (H, W)), paste_masks_separable(masks, boxes, (H, W))
+    assert out.shape == ref.shape == (30, 1, H, W)
+    assert float((out - ref).abs().max()) <= 1e-5
+    assert torch.equal(out > 0.5, ref > 0.5)
+
+
 def test_detector_matches_torch(tmp_path):
     from cosy_lite.models.detector import detect
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -132,7 +133,11 @@ class Manifest:
     def write(self) -> Path:
         payload = {"format": MANIFEST_FORMAT, "cosy_lite_version": self.version,
                    "models": {name: asdict(e) for name, e in sorted(self.models.items())}}
-        self.path.write_text(json.dumps(payload, indent=2) + "\n")
+        text = json.dumps(payload, indent=2)
+        # lists of numbers/strings on one line (obj_ids, shapes), the rest indented
+        text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]",
+                      text)
+        self.path.write_text(text + "\n")
         return self.path
 
     def entry(self, name: str) -> ModelEntry | None:
