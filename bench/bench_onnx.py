@@ -145,7 +145,8 @@ def end_to_end_table(ds, nets, objects_counts: list[int], warmup: int, repeat: i
         for name, s in sessions.items():
             predictors[(profile, f"onnx {name}")] = Predictor(PoseModel(s, "coarse", crop, ids),
                                                               PoseModel(s, "refiner", crop, ids), objects, renderer)
-    lines = [f"Image: {ds.name} test scene {rec.scene_id} image {rec.im_id}, objects {[rec.gt[i].obj_id for i in keep]}.",
+    lines = [f"Image: {ds.name} test scene {rec.scene_id} image {rec.im_id}, "
+             f"objects {[rec.gt[i].obj_id for i in keep]}.",
              "",
              "| profile | backend | objects | pose s (median) | pose s (best) | vs reference | crops ms | render ms "
              "| networks ms | onnx speed-up |",
@@ -168,9 +169,9 @@ def end_to_end_table(ds, nets, objects_counts: list[int], warmup: int, repeat: i
             crop = PROFILES[profile][1]
             ref = f"{pose_med / REFERENCE_S[n]:.2f}x of {REFERENCE_S[n]} s" if n in REFERENCE_S else "-"
             up = "-" if backend == "torch" else f"{torch_med[profile] / pose_med:.2f}x"
-            lines.append(f"| {profile} ({PROFILES[profile][0]}, {crop[0]}x{crop[1]}) | {backend} | {n} | {pose_med:.3f} "
-                         f"| {min(pose):.3f} | {ref} | {med['crops']:.0f} | {med['render']:.0f} | {med['networks']:.0f} "
-                         f"| {up} |")
+            lines.append(f"| {profile} ({PROFILES[profile][0]}, {crop[0]}x{crop[1]}) | {backend} | {n} "
+                         f"| {pose_med:.3f} | {min(pose):.3f} | {ref} | {med['crops']:.0f} | {med['render']:.0f} "
+                         f"| {med['networks']:.0f} | {up} |")
             print(lines[-1], flush=True)
     renderer.close()
     return lines
@@ -209,6 +210,17 @@ def detector_table(ds, tmp: Path, threads: int, warmup: int, repeat: int) -> lis
     return lines
 
 
+def cpu_name() -> str:
+    """The CPU model from /proc/cpuinfo (Linux), else the architecture."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return f"{line.split(':', 1)[1].strip()} ({platform.machine()})"
+    except OSError:
+        pass
+    return platform.machine()
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--dataset", type=Path, default=Path("data/ycbv-synth"))
@@ -236,7 +248,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     ds = BopDataset(args.dataset)
     load0 = os.getloadavg()
-    head = (f"{platform.machine()} {platform.processor() or ''}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
+    head = (f"{cpu_name()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
             f"onnxruntime {onnxruntime.__version__}, {args.threads} threads, "
             f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     print(f"# {head}", flush=True)

@@ -1,4 +1,5 @@
-"""``cosy-lite export``: checkpoints -> ONNX files + ``manifest.json`` (:func:`~cosy_lite.export.onnx_export.export_models`)."""
+"""``cosy-lite export``: checkpoints -> ONNX files + ``manifest.json``
+(:func:`~cosy_lite.export.onnx_export.export_models`)."""
 
 from __future__ import annotations
 

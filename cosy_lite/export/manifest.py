@@ -135,8 +135,8 @@ class Manifest:
                    "models": {name: asdict(e) for name, e in sorted(self.models.items())}}
         text = json.dumps(payload, indent=2)
         # lists of numbers/strings on one line (obj_ids, shapes), the rest indented
-        text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]",
-                      text)
+        text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]",
+                      lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", text)
         self.path.write_text(text + "\n")
         return self.path
 
@@ -195,7 +195,8 @@ def _entry(path: Path, name: str, raw: Any) -> ModelEntry:
     if e.kind not in KINDS:
         raise OnnxModelError(path, f"{where}.kind", f"{e.kind!r}, expected one of {list(KINDS)}")
     if e.quantization not in QUANTIZATIONS:
-        raise OnnxModelError(path, f"{where}.quantization", f"{e.quantization!r}, expected one of {list(QUANTIZATIONS)}")
+        raise OnnxModelError(path, f"{where}.quantization",
+                             f"{e.quantization!r}, expected one of {list(QUANTIZATIONS)}")
     ids = e.obj_ids
     if not isinstance(ids, list) or not ids or not all(isinstance(i, int) and i > 0 for i in ids):
         raise OnnxModelError(path, f"{where}.obj_ids", f"expected a non-empty list of positive ints, got {ids!r}")
@@ -206,6 +207,5 @@ def _entry(path: Path, name: str, raw: Any) -> ModelEntry:
         if (not isinstance(e.input_shape, list) or len(e.input_shape) != 4
                 or e.input_shape[1] != POSE_INPUT_CHANNELS or list(e.input_shape[2:]) != crop):
             raise OnnxModelError(path, f"{where}.input_shape", f"{e.input_shape!r}, expected "
-                                 f"['batch', {POSE_INPUT_CHANNELS}, {crop[0] if crop else 'h'}, "
-                                 f"{crop[1] if crop else 'w'}] (crop_resolution {crop})")
+                                 f"['batch', {POSE_INPUT_CHANNELS}, {crop[0]}, {crop[1]}] (crop_resolution {crop})")
     return e

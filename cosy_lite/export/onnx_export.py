@@ -106,7 +106,8 @@ def export_detector(detector: nn.Module, path: str | Path, source: str = "", ops
     net = copy.deepcopy(detector.net).float().cpu().eval()
     image = torch.rand(3, int(cfg.min_size), int(cfg.max_size), generator=torch.Generator().manual_seed(seed))
     with _separable_mask_paste():
-        _legacy_export(net, ([image],), path, opset=opset, input_names=[DETECTOR_INPUT], output_names=list(DETECTOR_OUTPUTS),
+        _legacy_export(net, ([image],), path, opset=opset, input_names=[DETECTOR_INPUT],
+                       output_names=list(DETECTOR_OUTPUTS),
                        dynamic_axes={DETECTOR_INPUT: {1: "height", 2: "width"}, "boxes": {0: "n"}, "labels": {0: "n"},
                                      "scores": {0: "n"}, "masks": {0: "n", 2: "height", 3: "width"}})
     entry = ModelEntry(file=path.name, kind="detector", obj_ids=list(detector.label_map.obj_ids),

@@ -179,7 +179,8 @@ class OnnxDetector:
             raise OnnxModelError(self.path, "graph input", f"{[(i.name, i.shape) for i in inputs]}, "
                                  "expected one image [3, height, width]")
         if outputs != ["boxes", "labels", "scores", "masks"]:
-            raise OnnxModelError(self.path, "graph outputs", f"{outputs}, expected ['boxes', 'labels', 'scores', 'masks']")
+            raise OnnxModelError(self.path, "graph outputs",
+                                 f"{outputs}, expected ['boxes', 'labels', 'scores', 'masks']")
         self.input_name = inputs[0].name
         self._table = np.asarray([0, *self.obj_ids], dtype=np.int64)
 
