@@ -27,7 +27,7 @@ from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
 from cosy_lite.models.losses import closest_symmetric_pose, disentangled_loss
 from cosy_lite.models.object_table import ObjectTable
-from cosy_lite.models.pose_net import PoseNet
+from cosy_lite.models.pose_net import OUTPUT_SCALES, PoseNet
 from cosy_lite.models.render_and_compare import iterate_poses, make_inputs
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
@@ -40,6 +40,9 @@ class PoseNetConfig:
     backbone: str = "resnet34"
     crop_resolution: list[int] = field(default_factory=lambda: [240, 320])  # (h, w), 4:3
     norm: str = "batch"
+    # head units -> (6D residual, xy shift as a fraction of the crop width, log depth); see PoseNet.
+    # None: the model kind's default (pose_net.OUTPUT_SCALES)
+    output_scale: list[float] | None = None
 
 
 @dataclass
@@ -74,9 +77,15 @@ class PoseTrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
 
 
-def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any]) -> PoseNet:
+def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner") -> PoseNet:
+    """The ``kind`` ("coarse" | "refiner") network of ``net_cfg`` (the kind only picks the default
+    output scale)."""
     cfg = net_cfg if isinstance(net_cfg, PoseNetConfig) else PoseNetConfig(**net_cfg)
-    return PoseNet(backbone=cfg.backbone, in_channels=6, norm=cfg.norm)
+    if kind not in OUTPUT_SCALES:
+        raise ValueError(f"model kind must be one of {sorted(OUTPUT_SCALES)}, got {kind!r}")
+    scale = OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale
+    return PoseNet(backbone=cfg.backbone, in_channels=6, norm=cfg.norm, output_scale=tuple(scale),
+                   crop_width=int(cfg.crop_resolution[1]))
 
 
 def initial_poses(model: str, TCO_gt: Tensor, boxes: Tensor, K: Tensor, diameters: Tensor, noise: PoseNoiseConfig,
@@ -163,7 +172,7 @@ class PoseTask:
         return PoseBatch.collate(items)
 
     def build_model(self) -> torch.nn.Module:
-        return build_pose_net(self.cfg.net)
+        return build_pose_net(self.cfg.net, self.cfg.model)
 
     def checkpoint_meta(self) -> dict[str, Any]:
         return {"obj_ids": self.objects.obj_ids, "net": asdict(self.cfg.net), "dataset": self.cfg.dataset,
