@@ -12,6 +12,7 @@ import sys
 
 # name -> (module, help)
 COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("cosy_lite.demo", "The whole job end to end on the default data: generate, train, infer, evaluate"),
     "generate": ("cosy_lite.synth.command", "Generate the embedded synthetic BOP dataset"),
     "show": ("cosy_lite.vis.command_show", "Overlay GT poses on a dataset image (PNG)"),
     "contact-sheet": ("cosy_lite.vis.command_contact_sheet", "Grid of random training images with GT contours (PNG)"),

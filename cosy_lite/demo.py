@@ -1,0 +1,177 @@
+"""``cosy-lite demo``: the whole job end to end on the embedded default data (the README's main command).
+
+Steps, each a separate process (the commands a user would type), each skipped when its output
+is already there, so an interrupted demo continues where it stopped:
+
+1. generate the default dataset ``ycbv-synth`` (if absent) and validate it;
+2. train the detector, the coarse model and the refiner (``configs/MODEL/demo.yaml`` with a
+   shorter time budget per model, :attr:`DemoConfig.train_minutes`); a run folder with a
+   checkpoint but no ``DONE`` marker is resumed;
+3. infer on the test split: detector -> coarse -> refiner (RGB), the same + depth ICP, and with
+   oracle (ground-truth) detections, so detector and pose errors can be told apart;
+4. evaluate every CSV (``cosy-lite eval``) and print one AR table (also written to
+   ``OUT/demo_summary.md`` and ``OUT/demo_ar.png``), with where the overlays are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+MODELS = ("detector", "coarse", "refiner")
+METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_mspd"}  # column -> scores.json key
+
+
+@dataclass
+class InferRun:
+    """One ``infer.py`` run of the demo: its method name (CSV prefix) and extra arguments."""
+
+    method: str
+    label: str
+    args: list[str]
+
+
+@dataclass
+class DemoConfig:
+    dataset: str = "ycbv-synth"
+    data_root: Path = REPO / "data"
+    runs: Path = REPO / "runs" / "demo"
+    out: Path = REPO / "outputs"
+    train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 5.0, "coarse": 4.0, "refiner": 5.0})
+    n_refiner_iters: int = 4
+    vis: int = 4
+    threads: int = 2
+
+
+def infer_runs(cfg: DemoConfig) -> list[InferRun]:
+    det = ["--detector", str(cfg.runs / "detector" / "checkpoint.pt")]
+    return [
+        InferRun("cosylite", "detector + coarse + refiner (RGB)", det + ["--vis", str(cfg.vis)]),
+        InferRun("cosyliteicp", "detector + coarse + refiner + depth ICP", det + ["--icp"]),
+        InferRun("cosyliteoracle", "GT boxes (oracle) + coarse + refiner (RGB)", ["--detections", "oracle"]),
+        InferRun("cosyliteoracleicp", "GT boxes (oracle) + coarse + refiner + depth ICP", ["--detections", "oracle", "--icp"]),
+    ]
+
+
+def _run(cmd: list[str], what: str) -> None:
+    print(f"\n=== {what}\n$ {' '.join(cmd)}", flush=True)
+    t = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=REPO)
+    if proc.returncode != 0:
+        raise SystemExit(f"demo: step '{what}' failed (exit {proc.returncode}); fix it and re-run: finished steps are skipped")
+    print(f"=== {what}: {time.perf_counter() - t:.0f} s", flush=True)
+
+
+def _py(*args: str) -> list[str]:
+    return [sys.executable, *args]
+
+
+def prepare_dataset(cfg: DemoConfig) -> Path:
+    root = cfg.data_root / cfg.dataset
+    if not (root / "test_targets_bop19.json").is_file():
+        synth_cfg = REPO / "configs" / "synth" / f"{cfg.dataset}.yaml"
+        extra = ["--config", str(synth_cfg)] if synth_cfg.is_file() else []
+        _run(_py("-m", "cosy_lite.cli", "generate", "--out", str(root), "--workers", "2", *extra), "generate the dataset")
+    _run(_py("-m", "cosy_lite.cli", "check-dataset", str(root)), "validate the dataset")
+    return root
+
+
+def train_models(cfg: DemoConfig, root: Path) -> None:
+    for model in MODELS:
+        run_dir = cfg.runs / model
+        if (run_dir / "DONE").is_file():
+            print(f"=== train {model}: done before ({run_dir})")
+            continue
+        cmd = _py("train.py", "--dataset", str(root), "--model", model, "--profile", "demo", "--out", str(run_dir),
+                  f"loop.max_minutes={cfg.train_minutes[model]}")
+        if (run_dir / "checkpoint.pt").is_file():
+            cmd.insert(cmd.index("--out"), "--resume")
+        _run(cmd, f"train {model} ({cfg.train_minutes[model]:g} min budget)")
+        (run_dir / "DONE").write_text("trained by cosy-lite demo\n")
+
+
+def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
+    results = []
+    for run in infer_runs(cfg):
+        csv = cfg.out / "results" / f"{run.method}_{cfg.dataset}-test.csv"
+        scores = csv.parent / f"{csv.stem}_eval" / "scores.json"
+        if not csv.is_file():
+            _run(_py("infer.py", "--dataset", str(root), "--coarse", str(cfg.runs / "coarse" / "checkpoint.pt"),
+                     "--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"), "--n-refiner-iters", str(cfg.n_refiner_iters),
+                     "--threads", str(cfg.threads), "--method", run.method, "--out", str(csv.parent), *run.args),
+                 f"infer: {run.label}")
+        if not scores.is_file():
+            _run(_py("-m", "cosy_lite.cli", "eval", "--dataset", str(root), "--results", str(csv), "--out", str(scores.parent)),
+                 f"evaluate: {run.label}")
+        results.append((run, json.loads(scores.read_text())))
+    return results
+
+
+def _metric(scores: dict, column: str) -> float:
+    return float(scores[METRICS[column]])
+
+
+def summary_table(results: list[tuple[InferRun, dict]]) -> str:
+    lines = ["| pipeline | " + " | ".join(METRICS) + " |", "| --- |" + " --- |" * len(METRICS)]
+    for run, scores in results:
+        lines.append(f"| {run.label} | " + " | ".join(f"{_metric(scores, m):.3f}" for m in METRICS) + " |")
+    return "\n".join(lines)
+
+
+def plot_summary(results: list[tuple[InferRun, dict]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    x = np.arange(len(METRICS))
+    w = 0.8 / len(results)
+    for i, (run, scores) in enumerate(results):
+        ax.bar(x + i * w - 0.4 + w / 2, [_metric(scores, m) for m in METRICS], w, label=run.label)
+    ax.set_xticks(x, list(METRICS))
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("recall")
+    ax.legend(fontsize=7)
+    ax.set_title("cosy-lite demo: test split, demo-profile models trained on the CPU")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", default=DemoConfig.dataset, help="synthetic dataset name (generated if absent)")
+    p.add_argument("--data-root", type=Path, default=DemoConfig.data_root)
+    p.add_argument("--runs", type=Path, default=DemoConfig.runs, help="run folders of the three models")
+    p.add_argument("--out", type=Path, default=DemoConfig.out, help="CSVs, scores, overlays, summary")
+    p.add_argument("--minutes", type=float, nargs=3, metavar=("DET", "COARSE", "REF"), default=None,
+                   help="training budget per model (default 5 4 5)")
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=args.out)
+    if args.minutes:
+        cfg.train_minutes = dict(zip(MODELS, args.minutes))
+    t0 = time.perf_counter()
+    root = prepare_dataset(cfg)
+    train_models(cfg, root)
+    results = infer_and_eval(cfg, root)
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    table = summary_table(results)
+    plot_summary(results, cfg.out / "demo_ar.png")
+    (cfg.out / "demo_summary.md").write_text(table + "\n")
+    print("\n" + table)
+    print(f"\noverlays (estimates over the test images, GT in another colour): {cfg.out / 'results' / 'vis'}")
+    print(f"AR plot: {cfg.out / 'demo_ar.png'}; recall curves: {cfg.out / 'results'}/*_eval/recall_curves.png")
+    print(f"demo wall time: {(time.perf_counter() - t0) / 60:.1f} min")
+    return 0
