@@ -202,7 +202,8 @@ def test_numpy_modules_import_without_torch():
             "from cosy_lite.inference import iterate_np\n"
             "from cosy_lite.models import initial_pose_np, pose_update_np\n"
             "from cosy_lite.export import onnx_models\n"
-            "print(crops_np.crop_image(np.ones((4, 4, 3), np.float32), np.array([[0.0, 0.0, 4.0, 4.0]]), (2, 2)).sum())\n")
+            "box = np.array([[0.0, 0.0, 4.0, 4.0]])\n"
+            "print(crops_np.crop_image(np.ones((4, 4, 3), np.float32), box, (2, 2)).sum())\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "12.0"

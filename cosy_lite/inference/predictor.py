@@ -12,7 +12,9 @@ Robot users: ``Predictor.from_checkpoints(coarse=..., refiner=..., models_dir=..
 ``predict(rgb, K)``; no dataset needed, only the BOP ``models/`` folder of the objects (PLY in mm
 + ``models_info.json``). Poses are object-to-camera in metres. Exported networks (``cosy-lite
 export``): ``Predictor.from_onnx(export_dir, models_dir=...)`` runs the same pipeline with the
-three networks in onnxruntime (crops, rendering, pose updates and ICP unchanged).
+three networks in onnxruntime; its pose iterations are the numpy twin of the torch loop
+(:mod:`cosy_lite.inference.iterate_np`: numpy crops, renders and pose updates, no torch op per
+iteration; torch only wraps the detections and the results, once per image).
 """
 
 from __future__ import annotations
@@ -33,8 +35,11 @@ from torch import Tensor, nn
 
 from cosy_lite.bop import io
 from cosy_lite.bop.detections import Detections
+from cosy_lite.inference import iterate_np
 from cosy_lite.inference.icp import IcpConfig, IcpResult
+from cosy_lite.inference.iterate_np import MIN_DEPTH
 from cosy_lite.inference.loaders import PoseModel, load_detector, load_pose_model
+from cosy_lite.models import initial_pose_np
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
 # has rendered crashes the process.
 from cosy_lite.models.detector import detect
@@ -48,7 +53,6 @@ class SetupError(ValueError):
 
 
 TIMING_KEYS = ("detection", "crops", "render", "networks", "icp", "total")
-MIN_DEPTH = 0.02  # m: an estimate nearer than this (or behind the camera) is flagged invalid (BOP: t >= 20 mm)
 
 
 # ----------------------------------------------------------------------------- results
@@ -175,10 +179,14 @@ class _Clock:
 
 
 class _TimedRenderer:
-    """A renderer whose ``render_tensors`` calls are timed under "render"."""
+    """A renderer whose ``render`` / ``render_tensors`` calls are timed under "render"."""
 
     def __init__(self, renderer: Any, clock: _Clock):
         self.renderer, self.clock = renderer, clock
+
+    def render(self, *args: Any, **kwargs: Any):
+        with self.clock("render"):
+            return self.renderer.render(*args, **kwargs)
 
     def render_tensors(self, *args: Any, **kwargs: Any):
         with self.clock("render"):
@@ -187,6 +195,16 @@ class _TimedRenderer:
 
 # name -> autocast dtype of the pose networks' forward pass (None: full fp32)
 PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
+
+
+def _timed_numpy_net(run: Callable[[np.ndarray], np.ndarray], clock: _Clock) -> Callable[[np.ndarray], np.ndarray]:
+    """A numpy network (``OnnxPoseNet.run``: ``[B,6,h,w]`` float32 -> ``[B,9]``) timed under "networks"."""
+
+    def timed(x: np.ndarray) -> np.ndarray:
+        with clock("networks"):
+            return run(x)
+
+    return timed
 
 
 def _timed_net(net: nn.Module | Callable[[Tensor], Tensor], clock: _Clock, channels_last: bool, precision: str):
@@ -388,7 +406,9 @@ class Predictor:
         precision: str = "fp32", detector: bool = True, spinning: bool = False,
     ) -> "Predictor":
         """The pipeline with the exported networks of ``export_dir`` (``cosy-lite export --out``)
-        in onnxruntime on the CPU; crops, rendering, pose updates and ICP as in :meth:`from_checkpoints`.
+        in onnxruntime on the CPU; the pose iterations in numpy (:mod:`~cosy_lite.inference.iterate_np`:
+        the crops, rendering and pose updates of :meth:`from_checkpoints`, no torch op per iteration);
+        ICP as there.
 
         Args:
             export_dir: folder with ``manifest.json``, ``coarse.onnx`` [, ``refiner.onnx``,
@@ -396,8 +416,8 @@ class Predictor:
                 sizes and the label map are in the files' metadata).
             models_dir / dataset: the objects' BOP ``models/`` folder, or a dataset (as
                 :meth:`from_checkpoints`).
-            threads: intra-op threads per onnxruntime session (None: its default); torch's own
-                threads (crops) are left as they are.
+            threads: intra-op threads per onnxruntime session (None: its default); the numpy crops
+                and pose updates run in the calling thread (torch's threads are not used).
             precision: "fp32", or "int8" (the dynamically quantised pose networks).
             detector: use ``detector.onnx`` when the export has one (False: detections are given).
             spinning: let idle onnxruntime threads spin (faster on a quiet machine, much slower on
@@ -428,6 +448,19 @@ class Predictor:
     def backend(self) -> str:
         """"torch" or "onnx" (networks in onnxruntime)."""
         return "torch" if all(isinstance(n, nn.Module) for n in self._nets.values()) else "onnx"
+
+    @property
+    def numpy_loop(self) -> bool:
+        """True when every pose network has a numpy ``run`` (onnxruntime sessions): the pose iterations
+        then run in numpy (:mod:`~cosy_lite.inference.iterate_np`), else in torch."""
+        return all(callable(getattr(n, "run", None)) for n in self._nets.values())
+
+    @cached_property
+    def _object_arrays(self) -> tuple[dict[int, int], np.ndarray, np.ndarray]:
+        """(obj_id -> row, points [O,N,3] float64 (m), diameters [O] float64 (m)) of the objects, for the numpy loop."""
+        rows = {int(o): k for k, o in enumerate(self.objects.obj_ids)}
+        return (rows, self.objects.points.detach().cpu().double().numpy(),
+                self.objects.diameters.detach().cpu().double().numpy())
 
     @property
     def obj_ids(self) -> list[int]:
@@ -491,7 +524,10 @@ class Predictor:
         if len(det) == 0:
             return PoseEstimates.empty(self._timings(clock, t_start))
         with _flush_denormals():
-            TCO_coarse, TCO = self._poses(rgb, K, det, clock)
+            if self.numpy_loop:
+                TCO_coarse, TCO = (torch.from_numpy(T) for T in self._poses_np(rgb, K.numpy(), det, clock))
+            else:
+                TCO_coarse, TCO = self._poses(rgb, K, det, clock)
         icp_results = None
         if self.icp and depth is not None:
             with clock("icp"):
@@ -544,6 +580,41 @@ class Predictor:
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu())
+
+    def _poses_np(self, rgb: np.ndarray, K: np.ndarray, det: Detections,
+                  clock: _Clock) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`_poses` with numpy networks and no torch op per iteration (one image, ``K [3,3]``):
+        (after coarse, after refiner) ``[N,4,4]`` float64."""
+        t0 = time.perf_counter()
+        before = clock.seconds["render"] + clock.seconds["networks"]
+        lookup, all_points, all_diameters = self._object_arrays
+        ids = [int(i) for i in det.obj_ids.tolist()]
+        rows = np.array([lookup[i] for i in ids], dtype=np.int64)
+        N = len(ids)
+        image = iterate_np.image_array(rgb)  # converted once; each object's crop reads it
+        K_b = np.broadcast_to(np.asarray(K, dtype=np.float64), (N, 3, 3))
+        points = all_points[rows]
+        TCO = initial_pose_np.initial_pose_from_boxes(det.boxes.double().numpy(), K_b, all_diameters[rows])
+        TCO_coarse = TCO
+        renderer = _TimedRenderer(self.renderer, clock)
+        steps = [("coarse", self.coarse, 1)]
+        if self.refiner is not None:
+            steps.append(("refiner", self.refiner, self.n_refiner_iterations))
+        for role, model, n_iterations in steps:
+            net = _timed_numpy_net(self._nets[role].run, clock)  # type: ignore[union-attr]
+            for _ in range(n_iterations):  # one at a time: a pose gone invalid is not rendered again
+                live = np.flatnonzero(iterate_np.valid_poses(TCO))
+                if len(live) == 0:
+                    break
+                new = iterate_np.iterate_poses(net, image, K_b[live], TCO[live], [ids[i] for i in live],
+                                               points[live], renderer, 1, model.crop_resolution, self.batch_size)[-1]
+                TCO = TCO.copy()
+                TCO[live] = new
+            if role == "coarse":
+                TCO_coarse = TCO
+        spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
+        clock.seconds["crops"] += spent
+        return iterate_np.orthonormalise(TCO_coarse), iterate_np.orthonormalise(TCO)
 
     def _icp(self, TCO: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
              size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
