@@ -32,7 +32,8 @@ class PoseModel:
 
     net: the :class:`~cosy_lite.models.pose_net.PoseNet` (eval mode), or any callable
     ``[B,6,h,w] -> [B,9]`` tensor function such as an
-    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet`; crop_resolution: (h, w) px of its input
+    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet` (nets with a numpy ``run``, as that one, make
+    the Predictor iterate in numpy: :mod:`~cosy_lite.inference.iterate_np`); crop_resolution: (h, w) px of its input
     crops; obj_ids: objects it was trained on; path: the checkpoint or ``.onnx`` file (None if
     built in code).
     """
