@@ -12,7 +12,8 @@ Usage: python bench/bench_onnx.py [--dataset data/ycbv-synth] [--threads 2] [--r
 2. End to end, per profile and object count: one 640x480 image of ``--dataset`` (as
    ``bench_inference.py``: its most visible 1 or 5 objects, GT visible boxes as detections, no
    detector, no ICP), coarse + 4 refiner iterations through ``Predictor.predict`` with the torch
-   networks and with the onnxruntime sessions; crops, rendering and pose updates are the same code.
+   networks and with the onnxruntime sessions; rendering is shared, crops and pose updates are torch
+   for the torch backend and numpy (``iterate_np``) for onnxruntime.
 3. The detector (demo profile, untrained; ``--no-detector`` skips it): torch vs onnxruntime on the image.
 
 Every variant runs ``--threads`` threads (torch: ``set_num_threads``, OpenMP waiting passively;

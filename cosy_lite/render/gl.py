@@ -69,8 +69,12 @@ class EglContext:
             )
         use_egl()
         # torchvision must be loaded before Mesa's EGL: importing it after the first render crashed the
-        # process (its LLVM clashed with llvmpipe's; measured here). It is a dependency anyway.
-        import torchvision  # noqa: F401
+        # process (its LLVM clashed with llvmpipe's; measured here). Without torch (an onnxruntime-only
+        # deployment) there is nothing to guard against.
+        try:
+            import torchvision  # noqa: F401
+        except ImportError:
+            pass
         from pyrender.platforms import egl
 
         if device_index is None:
