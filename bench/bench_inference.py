@@ -33,7 +33,7 @@ import numpy as np
 
 PROFILES = {  # name -> (backbone, crop (h, w))
     "effb3": ("efficientnet_b3", (240, 320)),
-    "demo": ("resnet18", (120, 160)),
+    "demo": ("resnet18", (96, 128)),  # configs/{coarse,refiner}/demo.yaml
 }
 REFERENCE_S = {1: 0.74, 5: 4.45}  # happypose CosyPose, EfficientNet-B3 240x320, this machine, no detector
 STAGES = ("crops", "render", "networks", "icp")
