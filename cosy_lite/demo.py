@@ -94,6 +94,7 @@ def train_models(cfg: DemoConfig, root: Path) -> None:
         if (run_dir / "checkpoint.pt").is_file():
             cmd.insert(cmd.index("--out"), "--resume")
         _run(cmd, f"train {model} ({cfg.train_minutes[model]:g} min budget)")
+        run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "DONE").write_text("trained by cosy-lite demo\n")
 
 

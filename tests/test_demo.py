@@ -1,0 +1,88 @@
+"""``cosy-lite demo`` orchestration: which commands it runs, what it skips, the summary it prints.
+
+The steps themselves (generate, train.py, infer.py, eval) have their own tests; here ``_run`` is
+replaced by a recorder so the order, the arguments and the resume rules are checked in milliseconds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from cosy_lite import demo
+
+
+@pytest.fixture
+def recorded(monkeypatch):
+    calls: list[list[str]] = []
+    monkeypatch.setattr(demo, "_run", lambda cmd, what: calls.append(cmd))
+    return calls
+
+
+def _cfg(tmp_path: Path) -> demo.DemoConfig:
+    return demo.DemoConfig(data_root=tmp_path / "data", runs=tmp_path / "runs", out=tmp_path / "out")
+
+
+def test_training_runs_each_model_once_with_its_budget_and_resumes_unfinished_runs(tmp_path, recorded):
+    cfg = _cfg(tmp_path)
+    (cfg.runs / "coarse").mkdir(parents=True)
+    (cfg.runs / "coarse" / "checkpoint.pt").write_bytes(b"")  # interrupted run: resumed
+    (cfg.runs / "refiner").mkdir(parents=True)
+    (cfg.runs / "refiner" / "DONE").write_text("")  # finished run: skipped
+    demo.train_models(cfg, tmp_path / "data" / "ycbv-synth")
+    assert [c[c.index("--model") + 1] for c in recorded] == ["detector", "coarse"]
+    det, coarse = recorded
+    assert "--resume" not in det and "loop.max_minutes=5.0" in det
+    assert "--resume" in coarse and "loop.max_minutes=4.0" in coarse
+    assert (cfg.runs / "detector" / "DONE").is_file() and (cfg.runs / "coarse" / "DONE").is_file()
+
+
+def test_generation_is_skipped_when_the_dataset_is_complete(tmp_path, recorded):
+    cfg = _cfg(tmp_path)
+    root = cfg.data_root / cfg.dataset
+    demo.prepare_dataset(cfg)
+    assert recorded[0][recorded[0].index("generate") + 2] == str(root)  # generate --out ROOT
+    recorded.clear()
+    root.mkdir(parents=True)
+    (root / "test_targets_bop19.json").write_text("[]")
+    demo.prepare_dataset(cfg)
+    assert len(recorded) == 1 and "check-dataset" in recorded[0]
+
+
+def _scores(ar: float) -> dict:
+    return {"ar": ar, "ar_vsd": ar + 0.1, "ar_mssd": ar + 0.2, "ar_mspd": ar + 0.3}
+
+
+def test_infer_and_eval_reads_every_scores_file_and_the_summary_lists_them(tmp_path, recorded):
+    cfg = _cfg(tmp_path)
+    runs = demo.infer_runs(cfg)
+    for i, run in enumerate(runs):  # as if infer.py and eval had run before
+        csv = cfg.out / "results" / f"{run.method}_{cfg.dataset}-test.csv"
+        (csv.parent / f"{csv.stem}_eval").mkdir(parents=True)
+        csv.write_text("")
+        (csv.parent / f"{csv.stem}_eval" / "scores.json").write_text(json.dumps(_scores(0.1 * i)))
+    results = demo.infer_and_eval(cfg, tmp_path)
+    assert recorded == []  # nothing re-run
+    assert [r.method for r, _ in results] == ["cosylite", "cosyliteicp", "cosyliteoracle", "cosyliteoracleicp"]
+    assert any("--icp" in r.args for r, _ in results[1:2]) and "oracle" in results[2][0].args
+    table = demo.summary_table(results).splitlines()
+    assert table[0] == "| pipeline | AR | AR_VSD | AR_MSSD | AR_MSPD |"
+    assert table[3].endswith("| 0.100 | 0.200 | 0.300 | 0.400 |")  # 2nd run: AR 0.1, VSD 0.2, ...
+    demo.plot_summary(results, tmp_path / "ar.png")
+    assert (tmp_path / "ar.png").stat().st_size > 5000
+
+
+def test_infer_and_eval_runs_the_missing_steps_with_the_demo_checkpoints(tmp_path, recorded, monkeypatch):
+    cfg = _cfg(tmp_path)
+    monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
+    demo.infer_and_eval(cfg, tmp_path / "root")
+    infers = [c for c in recorded if "infer.py" in c]
+    evals = [c for c in recorded if "eval" in c]
+    assert len(infers) == len(evals) == 4
+    first = infers[0]
+    assert first[first.index("--coarse") + 1] == str(cfg.runs / "coarse" / "checkpoint.pt")
+    assert first[first.index("--detector") + 1] == str(cfg.runs / "detector" / "checkpoint.pt")
+    assert first[first.index("--n-refiner-iters") + 1] == "4"
