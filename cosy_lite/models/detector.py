@@ -29,7 +29,7 @@ from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHe
 from torchvision.models.detection.mask_rcnn import MaskRCNNHeads, MaskRCNNPredictor
 from torchvision.models.detection.anchor_utils import AnchorGenerator
 from torchvision.models.detection.backbone_utils import BackboneWithFPN
-from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
+from torchvision.ops.feature_pyramid_network import FeaturePyramidNetwork, LastLevelMaxPool
 
 from cosy_lite.bop.detections import Detections
 from cosy_lite.models.backbones import norm_layer
@@ -127,6 +127,7 @@ class DetectorConfig:
     box_nms_thresh: float = 0.5
     box_detections_per_img: int = 100
     anchor_sizes: list[int] = field(default_factory=lambda: [32, 64, 128, 256, 512])  # px, one per FPN level (first n used)
+    pretrained: bool = True  # ImageNet weights for the backbones that have them (maskrcnn_lite*_fpn)
 
     def maskrcnn_kwargs(self) -> dict[str, Any]:
         keys = ("min_size", "max_size", "rpn_pre_nms_top_n_train", "rpn_post_nms_top_n_train",
@@ -162,12 +163,45 @@ def _mobilenet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig) -> Backb
                            cfg.fpn_channels, extra_blocks=LastLevelMaxPool())
 
 
+class LiteFPN(nn.Module):
+    """ImageNet-pretrained EfficientNet-Lite (strides 4, 8, 16, 32) + FPN (+ max-pool level): 5 levels.
+
+    The trunk's BatchNorm layers are frozen (pretrained statistics; detection batches of 1-2 images
+    are too small to re-estimate them) and its stem and first ``frozen_blocks`` blocks get no
+    gradient (as torchvision's ``trainable_backbone_layers``).
+    """
+
+    def __init__(self, trunk: str, fpn_channels: int, pretrained: bool, frozen_blocks: int = 1,
+                 load_weights: bool = True):
+        super().__init__()
+        from cosy_lite.models.pretrained import freeze_batchnorm, lite_features
+
+        # load_weights=False: the same (frozen) structure, weights to come from a checkpoint
+        body = lite_features(trunk, (1, 2, 3, 4), pretrained=pretrained and load_weights)
+        if pretrained:
+            body = freeze_batchnorm(body)
+            for module in [body.conv_stem, body.bn1, *list(body.blocks)[:frozen_blocks]]:
+                for p in module.parameters():
+                    p.requires_grad_(False)
+        self.body = body
+        self.fpn = FeaturePyramidNetwork(list(body.feature_info.channels()), fpn_channels,
+                                         extra_blocks=LastLevelMaxPool())
+        self.out_channels = fpn_channels
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        return self.fpn({str(i): f for i, f in enumerate(self.body(x))})
+
+
+def _lite_fpn(trunk: str, cfg: DetectorConfig, load_weights: bool = True) -> LiteFPN:
+    return LiteFPN(trunk, cfg.fpn_channels, cfg.pretrained, load_weights=load_weights)
+
+
 @dataclass(frozen=True)
 class DetectorSpec:
     """A backbone builder and the torchvision classifier it wraps."""
 
-    backbone: Callable[[Callable[..., nn.Module], DetectorConfig], BackboneWithFPN]
-    ctor: Callable[..., nn.Module]
+    backbone: Callable[[Any, DetectorConfig], nn.Module]
+    ctor: Any  # torchvision classifier constructor, or the timm trunk name
     n_levels: int  # FPN outputs incl. the max-pool level (one anchor size per level)
 
 
@@ -175,11 +209,15 @@ DETECTORS: dict[str, DetectorSpec] = {
     "maskrcnn_resnet50_fpn": DetectorSpec(_resnet_fpn, tvm.resnet50, 5),
     "maskrcnn_resnet18_fpn": DetectorSpec(_resnet_fpn, tvm.resnet18, 5),
     "maskrcnn_mobilenet_v3_large_fpn": DetectorSpec(_mobilenet_fpn, tvm.mobilenet_v3_large, 4),
+    "maskrcnn_lite0_fpn": DetectorSpec(_lite_fpn, "efficientnet_lite0", 5),  # ImageNet-pretrained (cfg.pretrained)
+    "maskrcnn_lite1_fpn": DetectorSpec(_lite_fpn, "efficientnet_lite1", 5),
 }
 
 
-def build_maskrcnn(cfg: DetectorConfig, n_classes: int) -> MaskRCNN:
-    """A randomly initialised torchvision MaskRCNN; nothing frozen (unlike torchvision's builders)."""
+def build_maskrcnn(cfg: DetectorConfig, n_classes: int, load_weights: bool = True) -> MaskRCNN:
+    """A torchvision MaskRCNN, randomly initialised except a pretrained trunk (``cfg.pretrained`` and a
+    ``maskrcnn_lite*`` backbone; ``load_weights=False`` skips reading those weights, for a model whose
+    weights come from a checkpoint). Scratch backbones have trainable BatchNorm (not torchvision's frozen)."""
     if cfg.name not in DETECTORS:
         raise ValueError(f"detector {cfg.name!r} unknown; available: {sorted(DETECTORS)}")
     spec = DETECTORS[cfg.name]
@@ -187,7 +225,7 @@ def build_maskrcnn(cfg: DetectorConfig, n_classes: int) -> MaskRCNN:
     if len(sizes) != spec.n_levels:
         raise ValueError(f"{cfg.name} needs {spec.n_levels} anchor_sizes (one per FPN level), got {cfg.anchor_sizes}")
     anchors = AnchorGenerator(tuple((s,) for s in sizes), ((0.5, 1.0, 2.0),) * spec.n_levels)
-    backbone = spec.backbone(spec.ctor, cfg)
+    backbone = spec.backbone(spec.ctor, cfg, load_weights) if spec.backbone is _lite_fpn else spec.backbone(spec.ctor, cfg)
     c, m = backbone.out_channels, cfg.mask_head_channels
     box_head = TwoMLPHead(c * BOX_POOL**2, cfg.box_head_size)
     return MaskRCNN(backbone, num_classes=None, rpn_anchor_generator=anchors,  # classes set by the predictors
@@ -210,19 +248,30 @@ class Detector(nn.Module):
         config: backbone name, image size and torchvision settings.
     """
 
-    def __init__(self, label_map: LabelMap, config: DetectorConfig | None = None):
+    def __init__(self, label_map: LabelMap, config: DetectorConfig | None = None, load_weights: bool = True):
         super().__init__()
         self.label_map = label_map
         self.config = config or DetectorConfig()
-        self.net = build_maskrcnn(self.config, label_map.n_classes)
+        self.net = build_maskrcnn(self.config, label_map.n_classes, load_weights)
 
     def meta(self) -> dict[str, Any]:
-        """What a checkpoint needs to rebuild the module (config + label map)."""
-        return {"detector_config": asdict(self.config), "label_map": self.label_map.to_dict()}
+        """What a checkpoint needs to rebuild the module (config + label map + initial weights)."""
+        return {"detector_config": asdict(self.config), "label_map": self.label_map.to_dict(),
+                "initialised_from": self.initialised_from()}
+
+    def initialised_from(self) -> str:
+        """The pretrained weights that initialised the trunk, or ``"scratch"``."""
+        from cosy_lite.models.pretrained import pretrained_source
+
+        trunk = DETECTORS[self.config.name].ctor
+        if self.config.pretrained and isinstance(trunk, str):
+            return pretrained_source(trunk)
+        return "scratch"
 
     @classmethod
     def from_meta(cls, meta: dict[str, Any]) -> "Detector":
-        return cls(LabelMap.from_dict(meta["label_map"]), DetectorConfig(**meta["detector_config"]))
+        """The module of a checkpoint's ``meta``, to receive the checkpoint's weights."""
+        return cls(LabelMap.from_dict(meta["label_map"]), DetectorConfig(**meta["detector_config"]), load_weights=False)
 
     def _check_targets(self, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]]) -> None:
         if len(targets) != len(images):
