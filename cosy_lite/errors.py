@@ -1,11 +1,26 @@
-"""Errors raised on bad input. Every message names the file, the field and what was expected."""
+"""Errors raised on bad input, and how the entry points report them.
+
+Every expected error (bad file, bad config, bad argument) is a :class:`CosyLiteError` whose message
+names the file, the field and what was expected. The entry points (``cosy-lite``, ``train.py``,
+``infer.py``) run through :func:`run_reporting_errors`: such an error becomes one line on stderr
+and exit status :data:`EXIT_BAD_INPUT`; anything else is a bug and keeps its traceback.
+"""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
+from typing import Callable
+
+EXIT_BAD_INPUT = 2  # as argparse for a bad command line
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
 
 
-class BopFormatError(ValueError):
+class CosyLiteError(ValueError):
+    """An expected error: the user's input cannot be used; the message says which file/field and why."""
+
+
+class BopFormatError(CosyLiteError):
     """A BOP file is missing, malformed or inconsistent.
 
     Args:
@@ -20,3 +35,49 @@ class BopFormatError(ValueError):
         self.problem = problem
         where = f"{self.path}" + (f" [{field}]" if field else "")
         super().__init__(f"{where}: {problem}")
+
+    def __reduce__(self):  # picklable with its three arguments (errors cross process pools)
+        return type(self), (self.path, self.field, self.problem)
+
+
+class ConfigError(CosyLiteError):
+    """A config that cannot be used: unknown key, wrong type, bad value, unreadable YAML.
+
+    Args:
+        where: the YAML file or ``command-line override 'a.b=c'`` the bad value came from.
+        field: the dotted key (``loop.steps``), "" for the whole file.
+        problem: what is wrong and what was expected.
+    """
+
+    def __init__(self, where: str | Path, field: str, problem: str):
+        self.where, self.field, self.problem = str(where), field, problem
+        super().__init__(f"{self.where}" + (f" [{field}]" if field else "") + f": {problem}")
+
+    def __reduce__(self):
+        return type(self), (self.where, self.field, self.problem)
+
+
+def describe_os_error(e: OSError) -> str:
+    """``PATH: reason`` for an OSError about a file (permission denied, disk full, not a folder ...)."""
+    names = [str(n) for n in (e.filename, e.filename2) if n is not None]
+    reason = e.strerror or str(e)
+    return f"{' -> '.join(names)}: {reason}" if names else reason
+
+
+def run_reporting_errors(main: Callable[[], int], prog: str) -> int:
+    """Run an entry point: expected errors -> ``PROG: error: MESSAGE`` on stderr, exit status 2.
+
+    Expected: :class:`CosyLiteError` (files, configs, arguments) and OSError (the file system
+    refused: missing file, permission, disk full). Ctrl-C exits with 130 and one line. Anything
+    else propagates with its traceback (a bug).
+    """
+    try:
+        return int(main() or 0)
+    except CosyLiteError as e:
+        print(f"{prog}: error: {' '.join(str(e).splitlines())}", file=sys.stderr)
+    except OSError as e:
+        print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return EXIT_BAD_INPUT

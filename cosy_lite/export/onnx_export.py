@@ -190,26 +190,29 @@ def export_models(out_dir: str | Path, detector: str | Path | None = None, coars
     ``refiner.onnx``; with ``quantize="int8"`` also ``coarse.int8.onnx``, ``refiner.int8.onnx``)
     and write ``manifest.json``. At least one checkpoint is needed.
 
-    Raises CheckpointError naming a checkpoint that is missing or of the wrong kind.
+    Raises CheckpointError naming a checkpoint that is missing, unreadable, refused (not
+    weights-only) or of the wrong kind; every checkpoint is checked before a file is written.
     """
     from cosy_lite.export.quantize import QUANTIZERS
+    from cosy_lite.inference.loaders import load_detector
 
     if detector is None and coarse is None and refiner is None:
         raise ValueError("nothing to export: give at least one of detector, coarse, refiner")
     if quantize is not None and quantize not in QUANTIZERS:
         raise ValueError(f"quantize must be one of {sorted(QUANTIZERS)}, got {quantize!r}")
+    # Every checkpoint is read (weights-only) and checked before anything is written.
+    det_model = load_detector(detector) if detector is not None else None
+    pose = {kind: _pose_net_from_checkpoint(Path(ckpt), kind)
+            for kind, ckpt in (("coarse", coarse), ("refiner", refiner)) if ckpt is not None}
+    sources = {"coarse": coarse, "refiner": refiner}
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     entries: dict[str, ModelEntry] = {}
-    if detector is not None:
-        from cosy_lite.inference.loaders import load_detector
-
-        entries["detector"] = export_detector(load_detector(detector), out_dir / "detector.onnx", str(detector), opset)
-    for kind, ckpt in (("coarse", coarse), ("refiner", refiner)):
-        if ckpt is None:
-            continue
-        net, crop, obj_ids, config = _pose_net_from_checkpoint(Path(ckpt), kind)
-        entries[kind] = export_pose_net(net, out_dir / f"{kind}.onnx", kind, crop, obj_ids, config, str(ckpt), opset)
+    if det_model is not None:
+        entries["detector"] = export_detector(det_model, out_dir / "detector.onnx", str(detector), opset)
+    for kind, (net, crop, obj_ids, config) in pose.items():
+        entries[kind] = export_pose_net(net, out_dir / f"{kind}.onnx", kind, crop, obj_ids, config,
+                                        str(sources[kind]), opset)
         if quantize is not None:
             entries[f"{kind}.{quantize}"] = QUANTIZERS[quantize](out_dir / f"{kind}.onnx",
                                                                  out_dir / f"{kind}.{quantize}.onnx", entries[kind],

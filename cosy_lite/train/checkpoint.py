@@ -1,27 +1,44 @@
 """Self-describing checkpoints: weights + full config + version + training state, written atomically.
 
 One file per run folder (``checkpoint.pt``) is rewritten every ``checkpoint_every`` steps: the new
-file is written next to it and moved over it with :func:`os.replace`, so a run killed at any moment
-(even ``kill -9``) leaves either the previous or the new checkpoint, never a truncated one.
+file is written next to it (``.checkpoint.pt.tmpPID``) and moved over it with :func:`os.replace`,
+so a run killed at any moment (even ``kill -9``) leaves either the previous or the new checkpoint,
+never a truncated one; :func:`remove_stale_temporaries` deletes what a killed write left behind.
+
+Loading never runs code: files are read with ``torch.load(weights_only=True)`` (tensors and plain
+data only), so a crafted file that would execute a payload when unpickled is refused with a
+:class:`CheckpointError`. :func:`save_checkpoint` therefore stores plain data only (dicts, lists,
+tuples, str, numbers, bools, None, tensors): dataclasses become dicts, paths strings.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import pickle
+import re
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
+import numpy as np
 import torch
 
 import cosy_lite
+from cosy_lite.errors import CosyLiteError
 
 CHECKPOINT_FORMAT = 1
 REQUIRED_KEYS = ("format", "kind", "model", "config", "step")
 
 
-class CheckpointError(ValueError):
-    """A checkpoint file that cannot be used; the message names the file and what is wrong."""
+TMP_INFIX = ".tmp"  # temporary file of a write in progress: .NAME.tmpPID
+# Leaf types a weights-only torch.load reads back (besides containers).
+PLAIN_LEAVES = (str, bytes, bool, int, float, complex, type(None), torch.Tensor, torch.Size, torch.dtype, torch.device)
+
+
+class CheckpointError(CosyLiteError):
+    """A checkpoint file (or the run folder's ``log.jsonl``) that cannot be used; the message names
+    the file and what is wrong."""
 
     def __init__(self, path: str | Path, problem: str):
         super().__init__(f"{path}: {problem}")
@@ -47,12 +64,60 @@ class Checkpoint:
     version: str = cosy_lite.__version__
 
 
+def plain_data(obj: Any, where: str = "checkpoint") -> Any:
+    """``obj`` as data a weights-only ``torch.load`` reads back: dataclasses -> dicts, paths ->
+    str, numpy scalars -> Python numbers; containers rebuilt only where something changed (a
+    state_dict keeps its type and metadata). TypeError naming the key for anything else."""
+    if isinstance(obj, PLAIN_LEAVES):
+        return obj
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return plain_data(dataclasses.asdict(obj), where)
+    if isinstance(obj, PurePath):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        out = {}
+        for k, v in obj.items():
+            if not isinstance(k, (str, int, float, bool, type(None))):
+                raise TypeError(f"{where}: key {k!r} of type {type(k).__name__} cannot be stored (use str or int keys)")
+            out[k] = plain_data(v, f"{where}.{k}")
+        return obj if all(out[k] is obj[k] for k in obj) else out
+    if isinstance(obj, (list, tuple, set)):
+        items = [plain_data(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+        if all(a is b for a, b in zip(items, obj)):
+            return obj
+        return items if isinstance(obj, list) else tuple(items) if isinstance(obj, tuple) else set(items)
+    raise TypeError(f"{where}: a {type(obj).__module__}.{type(obj).__name__} cannot be stored in a weights-only "
+                    "checkpoint (plain dicts, lists, str, numbers and tensors only)")
+
+
+def temporary_path(path: str | Path) -> Path:
+    """Where :func:`save_checkpoint` writes ``path`` before moving it into place (this process)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}{TMP_INFIX}{os.getpid()}")
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Delete the temporary files of ``path`` left by killed writes (not this process's); return them."""
+    path = Path(path)
+    mine = temporary_path(path)
+    stale = [p for p in path.parent.glob(f".{path.name}{TMP_INFIX}*") if p != mine and p.is_file()]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
+
+
 def save_checkpoint(path: str | Path, ckpt: Checkpoint) -> None:
-    """Write ``ckpt`` to ``path`` atomically (temporary file in the same folder + fsync + rename)."""
+    """Write ``ckpt`` to ``path`` atomically (temporary file in the same folder + fsync + rename).
+
+    Everything is stored as plain data (:func:`plain_data`), so :func:`load_checkpoint` reads it
+    weights-only; TypeError naming the key for a value that cannot be.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    payload = {
+    tmp = temporary_path(path)
+    payload = plain_data({
         "format": CHECKPOINT_FORMAT,
         "kind": ckpt.kind,
         "model": ckpt.model,
@@ -61,27 +126,62 @@ def save_checkpoint(path: str | Path, ckpt: Checkpoint) -> None:
         "train_state": ckpt.train_state,
         "meta": ckpt.meta,
         "version": ckpt.version,
-    }
-    with open(tmp, "wb") as f:
-        torch.save(payload, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    })
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)  # only after a failed write (disk full, ...): replaced files are gone
+
+
+def _refusal(e: Exception) -> str:
+    """What a weights-only load refused, without torch's advice on how to load the file unsafely."""
+    if found := re.search(r"GLOBAL ([\w.]+)", str(e)):
+        return f"it asks for the Python object {found.group(1)}"
+    found = re.search(r"WeightsUnpickler error:\s*([^.\n]+)", str(e))
+    return found.group(1).strip() if found else " ".join(str(e).split())[:200]
+
+
+def _check_fields(path: Path, payload: dict[str, Any]) -> None:
+    """CheckpointError naming the field when a field has the wrong type."""
+    if not isinstance(payload["kind"], str):
+        raise CheckpointError(path, f"field 'kind' must be a string, found {payload['kind']!r}")
+    step = payload["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise CheckpointError(path, f"field 'step' must be a non-negative integer, found {step!r}")
+    for name in ("model", "config", "train_state", "meta"):
+        if not isinstance(payload.get(name, {}), dict):
+            raise CheckpointError(path, f"field '{name}' must be a dict, found {type(payload[name]).__name__}")
+    bad = [k for k, v in payload["model"].items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
+    if bad:
+        raise CheckpointError(path, f"field 'model' must map parameter names to tensors; not so for {bad[:5]}")
 
 
 def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None) -> Checkpoint:
     """Read a checkpoint written by :func:`save_checkpoint` (on CPU).
 
-    Raises CheckpointError naming the file when it is missing, unreadable/truncated, lacks a field,
-    has another format version, or holds another kind of model than ``kind``.
+    Never runs code from the file (weights-only unpickling). Raises CheckpointError naming the file
+    when it is missing, unreadable/truncated, holds Python objects beyond weights and plain data (a
+    possible code payload: refused, nothing executed), lacks a field, has another format version,
+    or holds another kind of model than ``kind``.
     """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(path, "checkpoint file not found")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "GLOBAL" not in str(e):  # garbage, not a request for Python objects
+            raise CheckpointError(path, f"not a readable checkpoint ({_refusal(e)})") from None
+        raise CheckpointError(path, "refused: the file holds Python objects, not only weights and plain data, and "
+                                    f"loading it could run code ({_refusal(e)}); checkpoints are loaded weights-only "
+                                    "(write them with cosy_lite's save_checkpoint)") from None
     except Exception as e:  # truncated zip, not a torch file, ...
-        raise CheckpointError(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from None
+        msg = " ".join(str(e).splitlines())
+        raise CheckpointError(path, f"not a readable checkpoint ({type(e).__name__}: {msg})") from None
     if not isinstance(payload, dict):
         raise CheckpointError(path, f"expected a dict, found {type(payload).__name__}")
     missing = [k for k in REQUIRED_KEYS if k not in payload]
@@ -89,6 +189,7 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
         raise CheckpointError(path, f"missing field(s) {missing}")
     if payload["format"] != CHECKPOINT_FORMAT:
         raise CheckpointError(path, f"field 'format' is {payload['format']}, this version reads {CHECKPOINT_FORMAT}")
+    _check_fields(path, payload)
     kinds = (kind,) if isinstance(kind, str) else kind
     if kinds is not None and payload["kind"] not in kinds:
         raise CheckpointError(path, f"field 'kind' is {payload['kind']!r}, expected one of {list(kinds)}")
@@ -96,7 +197,7 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
         kind=payload["kind"],
         model=payload["model"],
         config=payload["config"],
-        step=int(payload["step"]),
+        step=payload["step"],
         train_state=payload.get("train_state", {}),
         meta=payload.get("meta", {}),
         version=payload.get("version", "?"),

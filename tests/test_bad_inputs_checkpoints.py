@@ -1,0 +1,184 @@
+"""Hostile and broken checkpoints: a pickle payload never runs (load_checkpoint, infer.py --coarse,
+the training loop's resume, cosy-lite export), every broken file gives one message naming it and exit 2,
+and what save_checkpoint writes loads weights-only (dataclasses and paths stored as plain data)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from bop_fixtures import write_tiny_bop
+
+from cosy_lite.train.checkpoint import CHECKPOINT_FORMAT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+
+class Payload:
+    """Unpickling this runs ``open(marker, "w")``: it creates the marker file."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def _evil(path: Path, marker: Path, kind: str = "coarse", legacy: bool = False) -> Path:
+    """A checkpoint-looking file whose unpickling creates ``marker`` (plain torch.save, as an attacker would)."""
+    payload = {"format": CHECKPOINT_FORMAT, "kind": kind, "model": {"w": torch.ones(2)}, "config": {},
+               "step": 0, "meta": {"obj_ids": [1], "hook": Payload(marker)}}
+    torch.save(payload, path, _use_new_zipfile_serialization=not legacy)
+    return path
+
+
+def _assert_refused(text: str, path: Path, marker: Path) -> None:
+    assert str(path) in text and "refused" in text and "could run code" in text, text
+    assert "Traceback" not in text
+    assert not marker.exists(), "the payload ran"
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["zip-format", "legacy-format"])
+def test_payload_does_not_run_in_load_checkpoint(tmp_path, legacy):
+    marker = tmp_path / "PWNED"
+    path = _evil(tmp_path / "evil.pt", marker, legacy=legacy)
+    with pytest.raises(CheckpointError) as e:
+        load_checkpoint(path)
+    _assert_refused(str(e.value), path, marker)
+    assert "Python object io.open" in str(e.value) or "builtins.open" in str(e.value)  # what was refused
+
+
+def test_payload_does_not_run_in_infer(tmp_path, capsys):
+    import infer
+
+    marker = tmp_path / "PWNED"
+    root = write_tiny_bop(tmp_path)
+    evil = _evil(tmp_path / "coarse.pt", marker)
+    rc = infer.main(["--dataset", str(root), "--coarse", str(evil), "--detections", "oracle",
+                     "--out", str(tmp_path / "out"), "--no-progress"])
+    assert rc == 2
+    _assert_refused(capsys.readouterr().err, evil, marker)
+
+
+def test_payload_does_not_run_in_export(tmp_path, capsys):
+    from cosy_lite.cli import main
+
+    marker = tmp_path / "PWNED"
+    evil = _evil(tmp_path / "refiner.pt", marker, kind="refiner")
+    assert main(["export", "--refiner", str(evil), "--out", str(tmp_path / "models")]) == 2
+    _assert_refused(capsys.readouterr().err, evil, marker)
+    assert not (tmp_path / "models" / "refiner.onnx").exists()
+
+
+def test_payload_does_not_run_on_resume(tmp_path):
+    """The training loop's --resume path (where train.py --resume ends)."""
+    from cosy_lite.train.loop import LoopConfig, train
+    from cosy_lite.train.schedule import OptimConfig
+    from toy_task import ToyTask
+
+    marker = tmp_path / "PWNED"
+    evil = _evil(tmp_path / "checkpoint.pt", marker, kind="toy")
+    loop = LoopConfig(steps=5, batch_size=4, num_workers=0, device="cpu")
+    with pytest.raises(CheckpointError) as e:
+        train(ToyTask(), loop, OptimConfig(), tmp_path, config={}, resume=True, progress=False)
+    _assert_refused(str(e.value), evil, marker)
+
+
+# ----------------------------------------------------------------------------- broken files
+
+
+def _good(path: Path, **changes) -> Path:
+    payload = {"format": CHECKPOINT_FORMAT, "kind": "coarse", "model": {"w": torch.ones(2)}, "config": {}, "step": 3,
+               "train_state": {}, "meta": {}, "version": "0.1.0", **changes}
+    torch.save(payload, path)
+    return path
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda p: p.write_bytes(b""), "not a readable checkpoint"),
+    (lambda p: p.write_bytes(b"definitely not a checkpoint"), "not a readable checkpoint"),
+    (lambda p: p.write_bytes(_good(p).read_bytes()[:300]), "not a readable checkpoint"),
+    (lambda p: torch.save([1, 2, 3], p), "expected a dict, found list"),
+    (lambda p: torch.save({"model": {}}, p), "missing field(s)"),
+    (lambda p: _good(p, format=99), "field 'format' is 99"),
+    (lambda p: _good(p, step="3"), "field 'step' must be a non-negative integer"),
+    (lambda p: _good(p, step=-1), "field 'step' must be a non-negative integer"),
+    (lambda p: _good(p, kind=7), "field 'kind' must be a string"),
+    (lambda p: _good(p, model={"w": [1.0, 2.0]}), "field 'model' must map parameter names to tensors"),
+    (lambda p: _good(p, meta=[1]), "field 'meta' must be a dict"),
+    (lambda p: _good(p, kind="detector"), "field 'kind' is 'detector', expected one of ['coarse']"),
+    (lambda p: torch.save({"x": np.zeros(3)}, p), "refused"),  # numpy arrays are not weights-only data
+], ids=["empty", "not-torch", "truncated", "a-list", "no-fields", "format", "step-str", "step-negative",
+        "kind-int", "model-not-tensors", "meta-list", "wrong-kind", "numpy-array"])
+def test_broken_checkpoint_names_the_file_and_the_problem(tmp_path, make, words):
+    path = tmp_path / "bad.pt"
+    make(path)
+    with pytest.raises(CheckpointError) as e:
+        load_checkpoint(path, kind="coarse")
+    assert str(e.value).startswith(f"{path}: ") and words in str(e.value), str(e.value)
+
+
+def test_a_folder_instead_of_a_checkpoint(tmp_path):
+    with pytest.raises(CheckpointError, match="checkpoint file not found"):
+        load_checkpoint(tmp_path)
+
+
+def _truncated(path: Path) -> Path:
+    save_checkpoint(path, Checkpoint("coarse", {"w": torch.ones(3)}, {}, 1))
+    path.write_bytes(path.read_bytes()[:100])
+    return path
+
+
+@pytest.mark.parametrize("command", ["infer-coarse", "export-coarse", "export-detector", "export-missing"])
+def test_entry_point_with_a_broken_checkpoint_is_one_message(tmp_path, capsys, command):
+    import infer
+    from cosy_lite.cli import main
+
+    bad = tmp_path / "missing.pt" if command == "export-missing" else _truncated(tmp_path / "bad.pt")
+    if command == "infer-coarse":
+        rc = infer.main(["--dataset", str(write_tiny_bop(tmp_path)), "--coarse", str(bad), "--detections", "oracle",
+                         "--out", str(tmp_path / "out"), "--no-progress"])
+    else:
+        flag = "--detector" if command == "export-detector" else "--coarse"
+        rc = main(["export", flag, str(bad), "--out", str(tmp_path / "models")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert f"{bad}: " in err and ("not a readable checkpoint" in err or "not found" in err), err
+    assert not (tmp_path / "models").exists()  # nothing exported
+
+
+# ----------------------------------------------------------------------------- round trip
+
+
+@dataclasses.dataclass
+class _Net:
+    crop_resolution: tuple[int, int] = (60, 80)
+    backbone: str = "resnet18"
+
+
+def test_save_stores_plain_data_that_loads_weights_only(tmp_path):
+    model = torch.nn.Linear(3, 2)
+    optimizer = torch.optim.Adam(model.parameters())
+    model(torch.ones(1, 3)).sum().backward()
+    optimizer.step()
+    meta = {"net": _Net(), "dataset_root": Path("/data/ycbv"), "score": np.float32(0.5), "obj_ids": (1, 2)}
+    path = tmp_path / "ck.pt"
+    save_checkpoint(path, Checkpoint("coarse", model.state_dict(), {"run": tmp_path}, 7,
+                                     {"optimizer": optimizer.state_dict()}, meta))
+    payload = torch.load(path, weights_only=True)  # what an untrusting reader does
+    assert payload["meta"] == {"net": {"crop_resolution": (60, 80), "backbone": "resnet18"},
+                               "dataset_root": "/data/ycbv", "score": 0.5, "obj_ids": (1, 2)}
+    assert payload["config"] == {"run": str(tmp_path)}
+    ck = load_checkpoint(path, kind="coarse")
+    restored = torch.nn.Linear(3, 2)
+    restored.load_state_dict(ck.model)
+    torch.optim.Adam(restored.parameters()).load_state_dict(ck.train_state["optimizer"])
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(restored.state_dict()[k], v, rtol=0, atol=0)
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_save_refuses_what_cannot_be_loaded_weights_only(tmp_path):
+    with pytest.raises(TypeError, match=r"checkpoint\.meta\.hook: a .*Payload cannot be stored"):
+        save_checkpoint(tmp_path / "ck.pt", Checkpoint("coarse", {}, {}, 0, meta={"hook": Payload(tmp_path / "m")}))
+    assert not list(tmp_path.iterdir())  # no checkpoint, no temporary file
