@@ -10,12 +10,17 @@ record per log interval / validation), ``loss.png``, ``config.yaml``.
 Determinism: the data order is a function of (seed, step) (:mod:`cosy_lite.train.sampler`) and the
 global RNG is re-seeded from (seed, step, rank) before each step, so a resumed run repeats exactly
 what the uninterrupted run would have done from the checkpoint on (on the same device type).
+Interrupted runs (also ``kill -9``): on start the log is cut back to the checkpoint's step (all of
+it when there is no checkpoint yet; a half-written last line is dropped), temporary checkpoint
+files of killed writes are deleted, and the checkpoint carries the partial loss sums of the current
+log interval and the elapsed time, so the resumed log reads as one uninterrupted run.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -25,7 +30,9 @@ from typing import Any, Callable, Protocol
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from cosy_lite.train.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.errors import ConfigError, CosyLiteError
+from cosy_lite.train.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, remove_stale_temporaries,
+                                        save_checkpoint)
 from cosy_lite.train.distributed import DistInfo, all_reduce_mean, barrier, init_distributed, shutdown_distributed
 from cosy_lite.train.sampler import StepBatchSampler
 from cosy_lite.train.schedule import OptimConfig, build_optimizer
@@ -99,12 +106,81 @@ def _check_same_config(path: Path, old: dict[str, Any], new: dict[str, Any]) -> 
         raise CheckpointError(path, f"cannot resume with a different config ({details})")
 
 
+class DivergedError(CosyLiteError, FloatingPointError):
+    """Training produced a non-finite loss (learning rate too high, broken data ...)."""
+
+
+def check_train_config(loop: LoopConfig, optim: OptimConfig, where: str | Path = "config") -> None:
+    """ConfigError naming ``where`` and the key for a loop/optimiser setting that cannot work.
+
+    Nothing is clamped or defaulted: ``loop.steps = 0`` would train nothing and report success.
+    """
+    def need(ok: bool, key: str, expected: str, value: Any) -> None:
+        if not ok:
+            raise ConfigError(where, key, f"{value!r}: expected {expected}")
+
+    need(loop.steps >= 1, "loop.steps", "at least 1 optimisation step", loop.steps)
+    need(loop.batch_size >= 1, "loop.batch_size", "at least 1 item per process", loop.batch_size)
+    need(loop.num_workers >= 0, "loop.num_workers", ">= 0 (0: load data in the main process)", loop.num_workers)
+    need(loop.log_every >= 1, "loop.log_every", "at least 1 step", loop.log_every)
+    need(loop.val_every >= 0, "loop.val_every", ">= 0 (0: no validation)", loop.val_every)
+    need(loop.checkpoint_every >= 1, "loop.checkpoint_every", "at least 1 step", loop.checkpoint_every)
+    need(math.isfinite(loop.max_minutes) and loop.max_minutes >= 0, "loop.max_minutes",
+         "a finite number >= 0 (0: no time limit)", loop.max_minutes)
+    if loop.device != "auto":
+        try:
+            device = torch.device(loop.device)
+        except (RuntimeError, ValueError):
+            raise ConfigError(where, "loop.device", f"{loop.device!r}: expected auto, cpu, cuda or cuda:N") from None
+        need(device.type != "cuda" or torch.cuda.is_available(), "loop.device",
+             "a device this machine has (no GPU found)", loop.device)
+    need(math.isfinite(optim.lr) and optim.lr > 0, "optim.lr", "a finite learning rate > 0", optim.lr)
+    need(math.isfinite(optim.weight_decay) and optim.weight_decay >= 0, "optim.weight_decay", "a finite number >= 0",
+         optim.weight_decay)
+    need(optim.warmup_steps >= 0, "optim.warmup_steps", ">= 0", optim.warmup_steps)
+    need(all(s >= 0 for s in optim.decay_steps), "optim.decay_steps", "steps >= 0", optim.decay_steps)
+    need(math.isfinite(optim.decay_factor) and optim.decay_factor > 0, "optim.decay_factor", "a finite factor > 0",
+         optim.decay_factor)
+    need(math.isfinite(optim.clip_grad_norm) and optim.clip_grad_norm >= 0, "optim.clip_grad_norm",
+         "a finite norm >= 0 (0: no clipping)", optim.clip_grad_norm)
+
+
+def read_log(log_path: Path) -> list[dict[str, Any]]:
+    """The records of ``log.jsonl``; a half-written last line (a killed run) is left out.
+
+    CheckpointError naming the file and line for a broken line elsewhere or a record without an
+    integer ``step``.
+    """
+    if not log_path.is_file():
+        return []
+    text = log_path.read_text(encoding="utf-8", errors="replace")
+    lines = text.split("\n")
+    records = []
+    for n, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as e:
+            if n == len(lines):  # no newline after it: the write was cut short
+                continue
+            raise CheckpointError(log_path, f"line {n}: not a JSON record ({e.msg}); "
+                                  "expected one JSON object per line") from None
+        step = record.get("step") if isinstance(record, dict) else None
+        if isinstance(step, bool) or not isinstance(step, int):
+            raise CheckpointError(log_path, f"line {n}: record without an integer 'step': {line[:80]!r}")
+        records.append(record)
+    return records
+
+
 def _truncate_log(log_path: Path, step: int) -> None:
-    """Drop log records written after the checkpoint (they will be produced again)."""
+    """Keep the log records up to ``step`` (the checkpoint's; 0: none): later ones will be produced again."""
     if not log_path.is_file():
         return
-    keep = [line for line in log_path.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
-    log_path.write_text("".join(line + "\n" for line in keep))
+    keep = [r for r in read_log(log_path) if r["step"] <= step]
+    tmp = log_path.with_name(f".{log_path.name}.tmp")
+    tmp.write_text("".join(json.dumps(r) + "\n" for r in keep))
+    os.replace(tmp, log_path)
 
 
 def plot_losses(log_path: Path, png_path: Path) -> None:
@@ -114,7 +190,7 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    records = read_log(log_path)
     train = [r for r in records if r.get("type") == "train"]
     val = [r for r in records if r.get("type") == "val"]
     fig, axes = plt.subplots(1, 2 if val else 1, figsize=(12 if val else 7, 4), squeeze=False)
@@ -147,29 +223,46 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     """
     from tqdm import tqdm
 
+    check_train_config(loop, optim)
     out_dir = Path(out_dir)
     ckpt_path, log_path = out_dir / CHECKPOINT_NAME, out_dir / LOG_NAME
     dist_info = init_distributed(loop.device)
     device = dist_info.device
     if dist_info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
+        if stale := remove_stale_temporaries(ckpt_path):
+            print(f"removed {len(stale)} temporary checkpoint file(s) of an interrupted run: {[p.name for p in stale]}")
 
     torch.set_flush_denormal(True)  # CPU: denormal floats (tiny Adam moments, activations) are very slow
     torch.manual_seed(loop.seed)  # the initial weights are a function of the seed (same on every rank)
     model = task.build_model().to(device)
     optimizer, scheduler = build_optimizer(model.parameters(), optim)
     start_step = 0
+    interval: dict[str, Any] = {"sums": {}, "n": 0}  # loss sums of the log interval in progress
+    elapsed_before = 0.0  # seconds trained before this process (resumed runs)
     if ckpt_path.is_file():
         if not resume:
             raise CheckpointError(ckpt_path, "a checkpoint already exists; pass --resume to continue it or choose another output folder")
         ckpt = load_checkpoint(ckpt_path, kind=task.kind)
         _check_same_config(ckpt_path, ckpt.config, config)
-        model.load_state_dict(ckpt.model)
-        optimizer.load_state_dict(ckpt.train_state["optimizer"])
-        scheduler.load_state_dict(ckpt.train_state["scheduler"])
+        if ckpt.step > loop.steps:
+            raise ConfigError(ckpt_path, "loop.steps", f"{loop.steps}: the checkpoint is at step {ckpt.step} already; "
+                              f"expected loop.steps >= {ckpt.step} to resume")
+        missing = [k for k in ("optimizer", "scheduler") if k not in ckpt.train_state]
+        if missing:
+            raise CheckpointError(ckpt_path, f"field 'train_state' lacks {missing}: not a checkpoint of a run to resume")
+        try:
+            model.load_state_dict(ckpt.model)
+            optimizer.load_state_dict(ckpt.train_state["optimizer"])
+            scheduler.load_state_dict(ckpt.train_state["scheduler"])
+        except (RuntimeError, ValueError, KeyError, TypeError) as e:
+            raise CheckpointError(ckpt_path, f"does not fit this model/optimiser ({type(e).__name__}: "
+                                  f"{str(e).splitlines()[0]})") from None
         start_step = ckpt.step
-        if dist_info.is_main:
-            _truncate_log(log_path, start_step)
+        interval = ckpt.train_state.get("log_interval", interval)
+        elapsed_before = float(ckpt.train_state.get("elapsed_s", 0.0))
+    if dist_info.is_main:  # records after the checkpoint (all, without one) come again
+        _truncate_log(log_path, start_step)
     barrier(dist_info)
 
     ddp_model: torch.nn.Module | None = None
@@ -179,6 +272,8 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     train_model = ddp_model if ddp_model is not None else model
 
     dataset = task.train_dataset()
+    if len(dataset) == 0:
+        raise CosyLiteError(f"{out_dir}: the {task.kind} training set is empty (no training items in the dataset)")
     sampler = StepBatchSampler(len(dataset), loop.batch_size, loop.seed, start_step, loop.steps,
                                dist_info.rank, dist_info.world_size)
     loader = DataLoader(dataset, batch_sampler=sampler, num_workers=loop.num_workers, collate_fn=task.collate,
@@ -191,7 +286,9 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             return
         save_checkpoint(ckpt_path, Checkpoint(
             kind=task.kind, model=model.state_dict(), config=config, step=step,
-            train_state={"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()},
+            train_state={"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                         "log_interval": {"sums": dict(sums), "n": n_sum},
+                         "elapsed_s": elapsed_before + time.perf_counter() - t_start},
             meta=task.checkpoint_meta()))
         if log_path.is_file():
             plot_losses(log_path, out_dir / "loss.png")
@@ -205,8 +302,8 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
                disable=not (progress and dist_info.is_main), dynamic_ncols=True)
     t_start = time.perf_counter()
     t_interval, items_interval = time.perf_counter(), 0
-    sums: dict[str, float] = {}
-    n_sum = 0
+    sums: dict[str, float] = dict(interval["sums"])
+    n_sum = int(interval["n"])
     step = start_step
     last_losses: dict[str, float] = {}
     last_val: dict[str, float] = {}
@@ -218,7 +315,8 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             losses = task.compute_losses(train_model, batch, step, device)
         total = losses["total"]
         if not torch.isfinite(total):
-            raise FloatingPointError(f"step {step}: non-finite loss {({k: float(v) for k, v in losses.items()})}")
+            raise DivergedError(f"{out_dir}: step {step}: non-finite loss {({k: float(v) for k, v in losses.items()})}; "
+                                "expected finite losses (lower optim.lr, check the data)")
         optimizer.zero_grad(set_to_none=True)
         total.backward()
         if optim.clip_grad_norm > 0:
@@ -239,7 +337,8 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             last_losses = {k: v / n_sum for k, v in sums.items()}
             rate = items_interval / max(dt, 1e-9)
             log({"type": "train", "step": step, "lr": scheduler.get_last_lr()[0], "items_per_s": rate,
-                 "elapsed_s": time.perf_counter() - t_start, **{f"loss/{k}": v for k, v in last_losses.items()}})
+                 "elapsed_s": elapsed_before + time.perf_counter() - t_start,
+                 **{f"loss/{k}": v for k, v in last_losses.items()}})
             bar.set_postfix(loss=f"{last_losses['total']:.4g}", items_s=f"{rate:.1f}")
             sums, n_sum, items_interval, t_interval = {}, 0, 0, time.perf_counter()
         out_of_time = loop.max_minutes > 0 and (time.perf_counter() - t_start) > 60 * loop.max_minutes
