@@ -71,23 +71,28 @@ def _backend_problem(args: argparse.Namespace) -> str | None:
     return None
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    # Waiting OpenMP threads sleep instead of spinning (read when torch loads, so only if it has
-    # not yet): on CPUs shared with other jobs, spinning threads made the networks 3-8x slower.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+def _argument_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with a numeric argument (None: nothing); nothing is clamped silently."""
+    for name, value, least in (("--threads", args.threads, 1), ("--limit-images", args.limit_images, 1),
+                               ("--n-refiner-iters", args.n_refiner_iters, 0), ("--vis", args.vis, 0)):
+        if value is not None and value < least:
+            return f"{name} {value}: expected an integer >= {least}"
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check the arguments, build the predictor, run it over the split, report."""
+    import torch
+
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.results import results_filename
-    from cosy_lite.errors import BopFormatError
-    from cosy_lite.export.manifest import OnnxModelError
     from cosy_lite.inference.bop_run import run_on_split
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
     from cosy_lite.synth.command import default_data_root
-    from cosy_lite.train.checkpoint import CheckpointError
 
     use_egl()
-    problem = _backend_problem(args)
+    problem = _backend_problem(args) or _argument_problem(args)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
@@ -100,38 +105,42 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --method / --split: {e}", file=sys.stderr)
         return 2
     root = Path(args.dataset) if Path(args.dataset).is_dir() else (args.data_root or default_data_root()) / args.dataset
-    try:
-        import torch
-
-        if args.threads is not None:
-            torch.set_num_threads(args.threads)
-        dataset = BopDataset(root)
-        if args.backend == "onnx":
-            predictor = Predictor.from_onnx(
-                args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
-                threads=args.threads, precision=args.precision, detector=args.detections is None)
-            if args.detections is None and predictor.detector is None:
-                raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
-                                 "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
-            detector_path = predictor.detector.path if predictor.detector is not None else None
-        else:
-            device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-            predictor = Predictor.from_checkpoints(
-                detector=args.detector if args.detections is None else None, coarse=args.coarse,
-                refiner=args.refiner, dataset=dataset, device=device,
-                n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
-                precision=args.precision)
-            detector_path = args.detector if args.detections is None else None
-        summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
-                               args.limit_images, progress=not args.no_progress, detector_path=detector_path)
-    except (CheckpointError, BopFormatError, FileNotFoundError, SetupError, OnnxModelError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    dataset = BopDataset(root)
+    if args.backend == "onnx":
+        predictor = Predictor.from_onnx(
+            args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
+            threads=args.threads, precision=args.precision, detector=args.detections is None)
+        if args.detections is None and predictor.detector is None:
+            raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
+                             "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
+        detector_path = predictor.detector.path if predictor.detector is not None else None
+    else:
+        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+        predictor = Predictor.from_checkpoints(
+            detector=args.detector if args.detections is None else None, coarse=args.coarse,
+            refiner=args.refiner, dataset=dataset, device=device,
+            n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
+            precision=args.precision)
+        detector_path = args.detector if args.detections is None else None
+    summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
+                           args.limit_images, progress=not args.no_progress, detector_path=detector_path)
     for p in summary.problems:
         print(p)
     for line in summary.lines():
         print(line)
     return 0 if summary.ok else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    # Waiting OpenMP threads sleep instead of spinning (read when torch loads, so only if it has
+    # not yet): on CPUs shared with other jobs, spinning threads made the networks 3-8x slower.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from cosy_lite.errors import run_reporting_errors
+
+    return run_reporting_errors(lambda: run(args), "infer.py")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ MODELS = ("detector", "coarse", "refiner")
 SYNTH_CONFIGS = {"ycbv-synth": None, "tiny": Path(__file__).parent / "configs" / "synth" / "tiny.yaml"}
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dataset", default="ycbv-synth", help="dataset name (folder under --data-root) or path")
     ap.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
@@ -27,15 +27,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="run folder (default runs/DATASET-MODEL)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     ap.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. loop.steps=200 net.backbone=resnet18")
-    args = ap.parse_args(argv)
-    # Waiting OpenMP threads sleep instead of spinning (read when torch loads): on CPUs shared with
-    # other jobs spinning threads made the networks 3-8x slower (measured for infer.py).
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return ap
 
+
+def run(args: argparse.Namespace) -> int:
+    """Load the config, find (or generate) the dataset, validate it, train."""
     from cosy_lite.bop.validate import check_dataset, report
     from cosy_lite.synth.command import default_data_root
+    from cosy_lite.train.command import load_train_config, run as train
 
     root = Path(args.dataset) if Path(args.dataset).is_dir() else (args.data_root or default_data_root()) / args.dataset
+    cfg = load_train_config(args, root.name)  # a bad config fails before any data work
     if not root.is_dir():
         if args.dataset not in SYNTH_CONFIGS:
             print(f"error: dataset folder {root} not found (BOP datasets cannot be downloaded here; "
@@ -47,10 +49,18 @@ def main(argv: list[str] | None = None) -> int:
         generate(load_config(SynthConfig, SYNTH_CONFIGS[args.dataset]), root)
     if report(check_dataset(root, splits=["train_pbr"]), str(root)):
         return 1
-    from cosy_lite.train.command import run
-
     args.dataset_name = root.name
-    return run(root, args)
+    return train(root, args, cfg)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    # Waiting OpenMP threads sleep instead of spinning (read when torch loads): on CPUs shared with
+    # other jobs spinning threads made the networks 3-8x slower (measured for infer.py).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from cosy_lite.errors import run_reporting_errors
+
+    return run_reporting_errors(lambda: run(args), "train.py")
 
 
 if __name__ == "__main__":

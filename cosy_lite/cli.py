@@ -1,7 +1,8 @@
 """The ``cosy-lite`` command: one sub-command per task, looked up in a table.
 
 Each entry names the module that implements it; that module exposes ``add_arguments(parser)``
-and ``run(args) -> int`` for the command (imported only when the command is used).
+and ``run(args) -> int`` for the command. Expected errors (bad files, configs, checkpoints) end
+as one message naming the file and the field, exit status 2 (:func:`cosy_lite.errors.run_reporting_errors`).
 """
 
 from __future__ import annotations
@@ -34,8 +35,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from cosy_lite.errors import run_reporting_errors
+
     args = build_parser().parse_args(argv)
-    return int(importlib.import_module(args._module).run(args) or 0)
+    return run_reporting_errors(lambda: importlib.import_module(args._module).run(args), f"cosy-lite {args.command}")
 
 
 if __name__ == "__main__":

@@ -7,31 +7,89 @@ import dataclasses
 from pathlib import Path
 from typing import Any, TypeVar
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+
+from cosy_lite.errors import ConfigError
 
 T = TypeVar("T")
 
 
-def load_config(cls: type[T], yaml_path: str | Path | None = None, overrides: list[str] | None = None) -> T:
+def _omegaconf_problem(e: OmegaConfBaseException) -> tuple[str, str]:
+    """(dotted key, message without OmegaConf's multi-line context) of an OmegaConf error."""
+    key = str(getattr(e, "full_key", "") or "")
+    msg = str(getattr(e, "msg", "") or e).split("\n    full_key")[0]
+    return key, " ".join(msg.split("\n"))
+
+
+def _failing_key(cfg: DictConfig, data: DictConfig) -> str:
+    """The top-level key of ``data`` whose merge into ``cfg`` fails ("" if none alone does)."""
+    for key in data:
+        try:
+            OmegaConf.merge(cfg, {key: data[key]})
+        except OmegaConfBaseException:
+            return str(key)
+    return ""
+
+
+def _load_yaml(path: Path) -> DictConfig:
+    """One YAML file as a mapping; a missing, unreadable or malformed file raises ConfigError."""
+    import yaml
+
+    if not path.is_file():
+        raise ConfigError(path, "", "config file not found")
+    try:
+        loaded = OmegaConf.load(path)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(path, "", f"malformed YAML{where}: {problem}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(path, "", f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except OmegaConfBaseException as e:
+        key, msg = _omegaconf_problem(e)
+        raise ConfigError(path, key, msg) from None
+    if not isinstance(loaded, DictConfig):
+        raise ConfigError(path, "", f"expected a mapping of config keys (key: value), found a {type(loaded).__name__}")
+    return loaded
+
+
+def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides: list[str] | None = None) -> T:
     """Build a ``cls`` instance: dataclass defaults <- YAML file <- ``["a.b=1", ...]`` overrides.
 
-    Unknown keys and wrongly typed values raise a ValueError naming the file and the key.
+    Raises ConfigError naming the file or the override, the key and what was expected: a missing
+    or malformed YAML file, an unknown key, a value of the wrong type, an override without ``=``.
     """
     cfg = OmegaConf.structured(cls)
-    where = "defaults"
+    if yaml_path is not None:
+        path = Path(yaml_path)
+        data = _load_yaml(path)
+        try:
+            cfg = OmegaConf.merge(cfg, data)
+        except OmegaConfBaseException as e:
+            key, msg = _omegaconf_problem(e)
+            raise ConfigError(path, key or _failing_key(cfg, data), msg) from None
+    for item in overrides or []:
+        where = f"command-line override {item!r}"
+        key, sep, _ = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(where, "", "expected key=value, e.g. loop.steps=200")
+        try:
+            cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
+        except OmegaConfBaseException as e:
+            full_key, msg = _omegaconf_problem(e)
+            raise ConfigError(where, full_key or key, msg) from None
+    sources = " + ".join([str(yaml_path or "defaults"), *(f"override {o!r}" for o in overrides or [])])
     try:
-        if yaml_path is not None:
-            where = str(yaml_path)
-            if not Path(yaml_path).is_file():
-                raise ValueError(f"{yaml_path}: config file not found")
-            cfg = OmegaConf.merge(cfg, OmegaConf.load(yaml_path))
-        if overrides:
-            where = f"command-line overrides {overrides}"
-            cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+        return OmegaConf.to_object(cfg)  # type: ignore[return-value]
     except OmegaConfBaseException as e:
-        raise ValueError(f"{where}: {e}".split("\n    full_key")[0]) from None
-    return OmegaConf.to_object(cfg)  # type: ignore[return-value]
+        key, msg = _omegaconf_problem(e)
+        raise ConfigError(sources, key, msg) from None
+    except (TypeError, ValueError) as e:  # a config dataclass's own checks (__post_init__)
+        if isinstance(e, ConfigError):
+            raise
+        raise ConfigError(sources, "", str(e)) from None
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:

@@ -1,10 +1,13 @@
 """Hostile and broken checkpoints: a pickle payload never runs (load_checkpoint, infer.py --coarse,
-the training loop's resume, cosy-lite export), every broken file gives one message naming it and exit 2,
+train.py --resume, cosy-lite export), every broken file gives one message naming it and exit 2,
 and what save_checkpoint writes loads weights-only (dataclasses and paths stored as plain data)."""
 
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +16,9 @@ import torch
 from bop_fixtures import write_tiny_bop
 
 from cosy_lite.train.checkpoint import CHECKPOINT_FORMAT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+
 
 class Payload:
     """Unpickling this runs ``open(marker, "w")``: it creates the marker file."""
@@ -71,7 +77,7 @@ def test_payload_does_not_run_in_export(tmp_path, capsys):
 
 
 def test_payload_does_not_run_on_resume(tmp_path):
-    """The training loop's --resume path (where train.py --resume ends)."""
+    """The training loop's --resume path (train.py --resume ends here, see test_train_py_resume_...)."""
     from cosy_lite.train.loop import LoopConfig, train
     from cosy_lite.train.schedule import OptimConfig
     from toy_task import ToyTask
@@ -82,6 +88,24 @@ def test_payload_does_not_run_on_resume(tmp_path):
     with pytest.raises(CheckpointError) as e:
         train(ToyTask(), loop, OptimConfig(), tmp_path, config={}, resume=True, progress=False)
     _assert_refused(str(e.value), evil, marker)
+
+
+def test_train_py_resume_with_a_payload_is_one_message(tiny_synth_root, tmp_path):
+    """A real ``python train.py --resume`` process: exit 2, one line naming the file, no traceback."""
+    marker = tmp_path / "PWNED"
+    out = tmp_path / "run"
+    out.mkdir()
+    evil = _evil(out / "checkpoint.pt", marker, kind="refiner")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, str(ROOT / "train.py"), "--dataset", str(tiny_synth_root), "--model", "refiner",
+                        "--out", str(out), "--resume", "loop.steps=1", "loop.num_workers=0", "loop.device=cpu",
+                        "data.val_images=1", "data.n_points=300", "net.backbone=resnet18",
+                        "net.crop_resolution=[60,80]"],
+                       capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    assert r.returncode == 2, r.stdout[-2000:] + r.stderr[-3000:]
+    lines = [s for s in r.stderr.splitlines() if "error" in s]
+    assert len(lines) == 1 and lines[0].startswith("train.py: error:"), r.stderr
+    _assert_refused(r.stderr, evil, marker)
 
 
 # ----------------------------------------------------------------------------- broken files

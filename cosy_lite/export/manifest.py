@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import cosy_lite
+from cosy_lite.errors import CosyLiteError
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = 1
@@ -50,7 +51,7 @@ META_KEYS: dict[str, str] = {
 REQUIRED_META = ("cosy_lite.kind", "cosy_lite.obj_ids", "cosy_lite.input", "cosy_lite.version")
 
 
-class OnnxModelError(ValueError):
+class OnnxModelError(CosyLiteError):
     """An exported model (or its manifest) that cannot be used as asked.
 
     Args:

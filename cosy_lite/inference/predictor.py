@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from cosy_lite.bop import io
 from cosy_lite.bop.detections import Detections
+from cosy_lite.errors import BopFormatError, CosyLiteError
 from cosy_lite.inference import iterate_np
 from cosy_lite.inference.icp import IcpConfig, IcpResult
 from cosy_lite.inference.iterate_np import MIN_DEPTH
@@ -47,7 +48,7 @@ from cosy_lite.models.initial_pose import initial_pose_from_boxes
 from cosy_lite.models.render_and_compare import iterate_poses
 
 
-class SetupError(ValueError):
+class SetupError(CosyLiteError):
     """A predictor that cannot be built or run as asked (missing model, objects not covered); the
     message names the file."""
 
@@ -137,8 +138,7 @@ class ObjectModels:
     def __post_init__(self) -> None:
         self.models_dir = Path(self.models_dir)
         if not (self.models_dir / "models_info.json").is_file():
-            raise FileNotFoundError(f"{self.models_dir / 'models_info.json'}: not found "
-                                    "(a BOP models/ folder is needed)")
+            raise BopFormatError(self.models_dir / "models_info.json", "", "not found (a BOP models/ folder is needed)")
 
     @cached_property
     def models_info(self) -> dict[int, io.ModelInfo]:

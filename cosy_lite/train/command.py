@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from cosy_lite.config import load_config, save_config
-from cosy_lite.train.loop import train
+from cosy_lite.errors import ConfigError
+from cosy_lite.train.loop import check_train_config, train
 
 CONFIGS_DIR = Path(__file__).resolve().parents[2] / "configs"
 
@@ -49,12 +50,28 @@ def default_config_path(model: str, profile: str = "demo") -> Path:
     return CONFIGS_DIR / model / f"{profile}.yaml"
 
 
-def run(root: Path, args: argparse.Namespace) -> int:
-    """Train ``args.model`` on the dataset at ``root``; the run folder is ``args.out``."""
-    config_cls, make_task = TASKS[args.model]
+def load_train_config(args: argparse.Namespace, dataset_name: str) -> Any:
+    """The training config of ``args`` (``--config`` or ``--profile`` YAML + overrides), checked:
+    ConfigError naming the file or override and the key for anything that cannot train."""
+    config_cls, _ = TASKS[args.model]
     cfg_path = Path(args.config) if args.config else default_config_path(args.model, args.profile)
-    cfg = load_config(config_cls(), cfg_path, [*args.overrides, f"model={args.model}", f"dataset={args.dataset_name}"])
+    if not args.config and not cfg_path.is_file():
+        profiles = sorted(p.stem for p in cfg_path.parent.glob("*.yaml"))
+        raise ConfigError(cfg_path, "--profile", f"no profile {args.profile!r} for the {args.model}; "
+                          f"expected one of {profiles}")
+    overrides = [*args.overrides, f"model={args.model}", f"dataset={dataset_name}"]
+    cfg = load_config(config_cls(), cfg_path, overrides)
+    check_train_config(cfg.loop, cfg.optim, " + ".join([str(cfg_path), *(f"override {o!r}" for o in args.overrides)]))
+    return cfg
+
+
+def run(root: Path, args: argparse.Namespace, cfg: Any | None = None) -> int:
+    """Train ``args.model`` on the dataset at ``root``; the run folder is ``args.out``."""
+    _, make_task = TASKS[args.model]
+    cfg = cfg if cfg is not None else load_train_config(args, args.dataset_name)
     out = Path(args.out) if args.out else Path("runs") / f"{args.dataset_name}-{args.model}"
+    if out.exists() and not out.is_dir():
+        raise ConfigError(out, "--out", "exists and is not a folder; expected a run folder")
     task = make_task(cfg, root)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
