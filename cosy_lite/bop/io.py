@@ -23,6 +23,7 @@ MM = 1e-3  # metres per millimetre
 MM_PER_M = 1000.0  # multiply (not divide by MM) so 0.3 m is written as 300.0
 MIN_PLAUSIBLE_T_MM = 20.0  # a cam_t_m2c shorter than this is almost surely in metres
 MIN_PLAUSIBLE_DIAMETER_MM = 5.0  # a model smaller than this is almost surely in metres
+NO_MESH = "no vertices with faces (an empty mesh or a point cloud); BOP models are triangle meshes"
 
 
 # ----------------------------------------------------------------------------- records
@@ -92,10 +93,14 @@ def load_json(path: str | Path) -> Any:
     if not path.is_file():
         raise BopFormatError(path, "", "file not found")
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8") as f:
             return json.load(f)
     except json.JSONDecodeError as e:
         raise BopFormatError(path, "", f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    except UnicodeDecodeError as e:
+        raise BopFormatError(path, "", f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
+    except RecursionError:
+        raise BopFormatError(path, "", "JSON nested too deeply") from None
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -141,22 +146,44 @@ def save_json(path: str | Path, obj: Any) -> None:
 
 
 def _im_key(path: Path, key: str) -> int:
-    try:
-        return int(key)
-    except ValueError:
-        raise BopFormatError(path, key, "keys must be integer ids written as strings, e.g. \"0\"") from None
+    if not (key.isascii() and key.isdigit()):  # int() would also take " 1", "+1" and "1_0"
+        raise BopFormatError(path, key, "keys must be non-negative integer ids written as strings, e.g. \"0\"")
+    return int(key)
+
+
+def _flat_numbers(value: Any) -> list[float] | None:
+    """The JSON numbers of ``value`` (a number or nested lists, as numpy reads them), None if
+    anything else is in it (strings and booleans are not numbers)."""
+    if isinstance(value, list):
+        out: list[float] = []
+        for v in value:
+            if (sub := _flat_numbers(v)) is None:
+                return None
+            out += sub
+        return out
+    return [value] if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
 def _numbers(path: Path, fld: str, value: Any, n: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise BopFormatError(path, fld, f"expected {n} numbers, got {value!r}") from None
+    """``n`` JSON numbers (a number or a list, possibly nested: ``cam_K`` as 3 rows); anything else raises."""
+    items = _flat_numbers(value)
+    expected = f"expected {n} number{'s' if n != 1 else ''}"
+    if items is None:
+        raise BopFormatError(path, fld, f"{expected}, got {value!r}")
+    arr = np.asarray(items, dtype=np.float64)
     if arr.size != n:
-        raise BopFormatError(path, fld, f"expected {n} numbers, got {arr.size}")
+        raise BopFormatError(path, fld, f"{expected}, got {arr.size}")
     if not np.all(np.isfinite(arr)):
         raise BopFormatError(path, fld, f"contains NaN or inf: {arr.tolist()}")
     return arr
+
+
+def _integers(path: Path, fld: str, value: Any, n: int) -> list[int]:
+    """``n`` integers (written as JSON integers or integral floats); anything else raises."""
+    arr = _numbers(path, fld, value, n)
+    if not np.all(arr == np.round(arr)):
+        raise BopFormatError(path, fld, f"expected {n} integers, got {arr.tolist()}")
+    return [int(v) for v in arr]
 
 
 def _get(path: Path, d: Any, fld: str, where: str) -> Any:
@@ -250,6 +277,15 @@ def save_models_info(path: str | Path, infos: dict[int, ModelInfo]) -> None:
     save_json(path, models_info_to_json(infos))
 
 
+def faces_problem(faces: np.ndarray, n_vertices: int) -> str | None:
+    """Why ``faces [F,3]`` (vertex indices) do not make a mesh of ``n_vertices`` vertices, or None."""
+    if faces.ndim != 2 or len(faces) == 0:
+        return "mesh has no faces (BOP models are triangle meshes)"
+    if faces.min() < 0 or faces.max() >= n_vertices:
+        return f"face vertex indices span {int(faces.min())}..{int(faces.max())}, expected 0..{n_vertices - 1}"
+    return None
+
+
 def load_model(path: str | Path):
     """Load a BOP model (PLY in mm, optional texture) as a ``trimesh.Trimesh`` in metres."""
     import trimesh
@@ -260,11 +296,13 @@ def load_model(path: str | Path):
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types on bad files
-        raise BopFormatError(path, "", f"cannot read mesh: {e}") from None
-    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
-        raise BopFormatError(path, "vertex/face", "mesh has no vertices or faces")
+        raise BopFormatError(path, "", f"cannot read mesh ({type(e).__name__}: {e})") from None
+    if len(mesh.vertices) == 0:
+        raise BopFormatError(path, "vertex", NO_MESH)
     if not np.all(np.isfinite(mesh.vertices)):
         raise BopFormatError(path, "vertex", "vertices contain NaN or inf")
+    if (msg := faces_problem(np.asarray(mesh.faces), len(mesh.vertices))) is not None:
+        raise BopFormatError(path, "face", msg)
     extent = float(np.ptp(mesh.vertices, axis=0).max())
     if extent < MIN_PLAUSIBLE_DIAMETER_MM:
         raise BopFormatError(path, "vertex", f"model extent {extent:.4g} is implausibly small for mm (model in metres?)")
@@ -366,9 +404,11 @@ def load_scene_gt_info(path: str | Path) -> dict[int, list[GtInfo]]:
     def parse(d: Any, where: str) -> GtInfo:
         vals: dict[str, Any] = {}
         for fld in ("bbox_obj", "bbox_visib"):
-            vals[fld] = [int(v) for v in _numbers(path, f"{where}.{fld}", _get(path, d, fld, where), 4)]
+            vals[fld] = _integers(path, f"{where}.{fld}", _get(path, d, fld, where), 4)
         for fld in ("px_count_all", "px_count_valid", "px_count_visib"):
-            vals[fld] = int(_numbers(path, f"{where}.{fld}", _get(path, d, fld, where), 1)[0])
+            vals[fld] = _integers(path, f"{where}.{fld}", _get(path, d, fld, where), 1)[0]
+            if vals[fld] < 0:
+                raise BopFormatError(path, f"{where}.{fld}", f"must be >= 0, got {vals[fld]}")
         vf = float(_numbers(path, f"{where}.visib_fract", _get(path, d, "visib_fract", where), 1)[0])
         if not 0.0 <= vf <= 1.0:
             raise BopFormatError(path, f"{where}.visib_fract", f"must be in [0, 1], got {vf}")
@@ -431,10 +471,14 @@ def load_image(path: str | Path) -> np.ndarray:
     im = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if im is None:
         raise BopFormatError(path, "", "cannot decode image")
-    if im.dtype != np.uint8:
-        im = cv2.normalize(im, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if im.dtype == np.uint16:  # the same brightness for every image (a per-image min-max stretch would not be)
+        im = np.round(im / 257.0).astype(np.uint8)
+    elif im.dtype != np.uint8:
+        raise BopFormatError(path, "bit depth", f"{im.dtype} pixels: expected an 8-bit (or 16-bit) colour image")
     if im.ndim == 2:
         return np.repeat(im[:, :, None], 3, axis=2)
+    if im.shape[2] == 2:  # gray + alpha
+        return np.repeat(im[:, :, :1], 3, axis=2)
     return cv2.cvtColor(im[:, :, :3], cv2.COLOR_BGR2RGB)
 
 
@@ -451,9 +495,13 @@ def load_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise BopFormatError(path, "", "depth file not found")
-    d = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if d is None or d.ndim != 2:
-        raise BopFormatError(path, "", "cannot decode a single-channel depth image")
+        what = "cannot decode the image" if d is None else f"{d.shape[2]} channels"
+        raise BopFormatError(path, "", f"{what}: expected a single-channel 16-bit depth image")
+    if d.dtype != np.uint16:
+        raise BopFormatError(path, "bit depth", f"{d.dtype} pixels: expected uint16 (BOP depth is 16-bit, "
+                             "value * depth_scale = mm); an 8-bit image loses the depth")
     return d.astype(np.float32) * np.float32(depth_scale * MM)
 
 

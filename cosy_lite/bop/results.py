@@ -229,15 +229,15 @@ def parse_results_csv(path: str | Path) -> Iterator[ResultRow]:
     """Check a results file line by line, collecting every problem instead of stopping.
 
     Yields one :class:`ResultRow` per line (estimate None where the line has problems), then one
-    row per image whose lines disagree on ``time``. A single newline after the last line is
-    tolerated here (the toolkit reads it); empty lines anywhere are errors. Missing file or
-    undecodable text raise BopFormatError.
+    row per image whose lines disagree on ``time``. A single newline after the last line and a
+    UTF-8 byte-order mark are tolerated here (the toolkit reads both); empty lines anywhere are
+    errors. Missing file or undecodable text raise BopFormatError.
     """
     path = Path(path)
     if not path.is_file():
         raise BopFormatError(path, "", "results file not found")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is skipped, as the toolkit does
     except UnicodeDecodeError as e:
         raise BopFormatError(path, "", f"not a UTF-8 text file: {e}") from None
     lines = [s.removesuffix("\r") for s in text.split("\n")]

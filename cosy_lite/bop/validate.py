@@ -7,6 +7,7 @@ per-file checks; this module adds the checks across files (ids, image files, siz
 
 from __future__ import annotations
 
+import codecs
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -30,6 +31,8 @@ TARGETS_FILE = "test_targets_bop19.json"
 UNIT_MIXUP_RATIO = 30.0  # model extent and diameter further apart than this: mm/m mix-up (~1000x)
 DIAMETER_TOL = 0.05  # relative slack when comparing a diameter with the model's bounding box
 MAX_LISTED = 10  # ids listed in one message
+# PIL modes of a BOP depth image: single-channel 16-bit (an 8-bit PNG would be read as depth / 256).
+DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I")
 
 
 @dataclass
@@ -119,12 +122,20 @@ def _check_model_file(ply: Path, info_path: Path, obj_id: int, diameter_mm: floa
     import trimesh
 
     try:
-        v = np.asarray(trimesh.load(ply, force="mesh", process=False).vertices, dtype=np.float64)
+        mesh = trimesh.load(ply, force="mesh", process=False)
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
     except Exception as e:  # trimesh raises many types on bad files
-        out.error(ply, "", f"cannot read mesh: {e}")
+        out.error(ply, "", f"cannot read mesh ({type(e).__name__}: {e})")
         return
-    if len(v) == 0 or not np.all(np.isfinite(v)):
-        out.error(ply, "vertex", "no vertices, or vertices with NaN/inf")
+    if len(v) == 0:
+        out.error(ply, "vertex", io.NO_MESH)
+        return
+    if not np.all(np.isfinite(v)):
+        out.error(ply, "vertex", "vertices contain NaN or inf")
+        return
+    if (msg := io.faces_problem(faces, len(v))) is not None:
+        out.error(ply, "face", msg)
         return
     sides = np.ptp(v, axis=0)
     diag = float(np.linalg.norm(sides))
@@ -185,14 +196,14 @@ def _list_images(folder: Path) -> dict[int, Path]:
     return {int(p.stem): p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit()}
 
 
-def _image_size(path: Path, out: _Collector) -> tuple[int, int] | None:
-    """(width, height) from the image header only (PIL opens lazily, no decoding)."""
+def _image_header(path: Path, out: _Collector) -> tuple[tuple[int, int], str] | None:
+    """((width, height), PIL mode) from the image header only (PIL opens lazily, no decoding)."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
-            return im.size
-    except (OSError, UnidentifiedImageError) as e:
+            return im.size, im.mode
+    except (OSError, UnidentifiedImageError, ValueError) as e:
         out.error(path, "", f"cannot read the image header: {e}")
         return None
 
@@ -201,6 +212,12 @@ def _check_scene_files(scene_dir: Path, obj_ids: set[int] | None, out: _Collecto
     """Parse the three scene files, check ids across them; return (cameras, gts)."""
     paths = {f: scene_dir / f for f in SCENE_FILES}
     cams = out.load(io.load_scene_camera, paths["scene_camera.json"])
+    if cams is not None and (scene_dir / "depth").is_dir():
+        raw = io.load_json(paths["scene_camera.json"])
+        if no_scale := sorted(int(k) for k, d in raw.items() if "depth_scale" not in d):
+            out.warning(paths["scene_camera.json"], "depth_scale", (
+                f"missing for image ids {_short(no_scale)} although depth images exist: 1.0 assumed (depth PNG value "
+                "= mm); the BOP toolkit needs it"))
     gts = infos = None
     if not paths["scene_gt.json"].is_file() and not paths["scene_gt_info.json"].is_file():
         out.warning(scene_dir, "scene_gt.json", "no scene_gt.json nor scene_gt_info.json (GT withheld?): GT checks skipped")
@@ -259,7 +276,12 @@ def _check_scene_images(
     for im_id in im_ids:
         sizes = {}
         for sub in (color, "depth"):
-            if (p := found[sub].get(im_id)) is None or (size := _image_size(p, out)) is None:
+            if (p := found[sub].get(im_id)) is None or (header := _image_header(p, out)) is None:
+                continue
+            size, mode = header
+            if sub == "depth" and mode not in DEPTH_MODES:
+                out.error(p, "bit depth", f"PIL mode {mode!r}: expected a single-channel 16-bit depth image "
+                          "(BOP depth is uint16, value * depth_scale = mm); an 8-bit image loses the depth")
                 continue
             sizes[sub] = (p, size)
             if expected is not None and size != expected:
@@ -497,6 +519,9 @@ def check_results(
     if not rows and not any(p.severity == "error" for p in out.items):
         out.warning(path, "", "no pose estimates in the file")
     raw = path.read_bytes()
+    if raw.startswith(codecs.BOM_UTF8):
+        out.warning(path, "line 1: header", "starts with a UTF-8 byte-order mark (read as the BOP toolkit does: "
+                    "ignored; it writes none)")
     if raw.endswith(b"\n") and not raw.endswith((b"\n\n", b"\n\r\n")):
         n_lines = raw.count(b"\n")
         out.warning(path, f"line {n_lines}: row", "newline after the last line (the BOP toolkit writes none)")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import sys
 from pathlib import Path
 
 
@@ -80,16 +82,37 @@ def plot_curves(result, path: Path) -> None:
     plt.close(fig)
 
 
+def _argument_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with a numeric option (None: nothing)."""
+    if not (math.isfinite(args.max_sym_disc_step) and args.max_sym_disc_step > 0):
+        return f"--max-sym-disc-step {args.max_sym_disc_step}: expected a step > 0 (BOP: 0.01)"
+    if not (args.visib_gt_min == -1.0 or 0.0 <= args.visib_gt_min <= 1.0):
+        return (f"--visib-gt-min {args.visib_gt_min}: expected -1 (BOP19: the inst_count most visible) "
+                "or a fraction in [0, 1]")
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
+    """Check the options, the results file and the dataset (every problem reported, nothing scored
+    on bad input), then score and write ``scores.json`` + ``recall_curves.png``."""
     from cosy_lite.bop.command_check_results import resolve_dataset
     from cosy_lite.bop.io import atomic_write_text
-    from cosy_lite.bop.validate import check_results, report
-    from cosy_lite.eval.evaluator import evaluate
+    from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report
+    from cosy_lite.eval.evaluator import eval_split, evaluate
 
+    if problem := _argument_problem(args):
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     root = resolve_dataset(args.dataset)
     problems = check_results(args.results, root, args.name, args.split)
+    if root.is_dir():  # (a missing folder is reported by check_results)
+        split = eval_split(args.name or root.name, args.split)
+        problems += check_dataset(root, args.name, splits=[split])
+        if not (root / TARGETS_FILE).is_file():
+            problems.append(Problem(str(root / TARGETS_FILE), "", "file not found: the BOP19 evaluation scores "
+                                    "the targets it lists"))
     if any(p.severity == "error" for p in problems):
-        return report(problems, str(args.results))
+        return report(problems, f"{args.results} on {root}")
     for p in problems:
         print(p)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,

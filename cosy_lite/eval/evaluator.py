@@ -103,6 +103,14 @@ def _targets_by_image(targets: list[Target]) -> dict[tuple[int, int], list[Targe
     return out
 
 
+def eval_split(name: str, split: str | None = None) -> str:
+    """The split folder to evaluate: ``split``, else the dataset's BOP19 test split (table), else ``test``."""
+    from cosy_lite.bop.params import DATASETS
+
+    params = DATASETS.get(name)
+    return split or (params.test_split if params is not None else "test")
+
+
 def evaluate(
     dataset_root: str | Path,
     results_csv: str | Path,
@@ -117,7 +125,8 @@ def evaluate(
 
     Args:
         dataset_root: BOP dataset folder (``models_eval/``, ``test_targets_bop19.json``, test split).
-        results_csv: BOP19 results CSV (validate it first with ``check_results``).
+        results_csv: BOP19 results CSV (validate it and the dataset first: ``check_results``,
+            ``check_dataset``; ``cosy-lite eval`` does).
         split: split folder (default: the dataset's test split from the parameter table, else ``test``).
         name: dataset name for the parameter table (default: the folder name).
         max_sym_disc_step, sym_zero_angle: discretisation of continuous symmetries (see
@@ -135,7 +144,7 @@ def evaluate(
     t0 = time.perf_counter()
     ds = BopDataset(Path(dataset_root), name or "")
     params = DATASETS.get(ds.name)
-    split = split or (params.test_split if params is not None else "test")
+    split = eval_split(ds.name, split)
     delta = (params.vsd_delta_mm if params is not None else 15.0) * 1e-3
     estimates = read_results_csv(results_csv)
     top = _top_estimates(estimates)
