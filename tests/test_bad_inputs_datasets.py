@@ -14,9 +14,13 @@ import pytest
 from bop_fixtures import GT, edit_json, scene_dir, write_models, write_tiny_bop
 
 from cosy_lite.bop import io
+from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.results import PoseEstimate, write_results_csv
 from cosy_lite.cli import main
 from cosy_lite.errors import BopFormatError
+# torchvision (imported by the inference modules) before any rendering: after Mesa has rendered,
+# importing it crashes the process (see cosy_lite/inference/predictor.py).
+from cosy_lite.inference.bop_run import run_on_split
 
 SCENE = "test/000000"
 
@@ -226,3 +230,13 @@ def test_missing_depth_scale_is_not_assumed_silently(root: Path, capsys):
     rc, text = _cli(capsys, "check-dataset", str(root))
     where = f"{scene_dir(root) / 'scene_camera.json'} [depth_scale]"
     assert rc == 0 and f"WARNING {where}: missing for image ids 1 although depth images exist: 1.0 assumed" in text
+
+
+def test_infer_refuses_depth_of_another_size(root: Path):
+    """``infer.py --icp`` reads the depth images without check-dataset: a wrong size is named there too."""
+    class _IcpPredictor:  # only what run_on_split touches before the poses
+        icp, detector, coarse, refiner, obj_ids = True, None, None, None, [1, 2]
+
+    cv2.imwrite(str(scene_dir(root) / "depth" / "000000.png"), np.full((240, 320), 7000, np.uint16))
+    with pytest.raises(BopFormatError, match=r"000000\.png \[size\]: 320x240 pixels, but the image .* is 640x480"):
+        run_on_split(_IcpPredictor(), BopDataset(root), root.parent / "out", detections="oracle", progress=False)

@@ -28,6 +28,9 @@ from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError
 
 ImageKey = tuple[int, int]  # (scene_id, im_id)
+# A box narrower or lower than this has nothing to crop; its box-based starting pose would be
+# hundreds of metres away (depth = focal length x diameter / box size). Such detections are skipped.
+MIN_BOX_SIZE_PX = 1.0
 
 
 @dataclass
@@ -65,6 +68,20 @@ class Detections:
     def to(self, device: torch.device | str) -> "Detections":
         return Detections(self.boxes.to(device), self.obj_ids.to(device), self.scores.to(device),
                           None if self.masks is None else self.masks.to(device), self.time_s)
+
+
+def degenerate_boxes(det: Detections) -> torch.Tensor:
+    """``[N]`` bool: boxes with a non-finite corner or a side under :data:`MIN_BOX_SIZE_PX`."""
+    boxes = det.boxes.double()
+    sides = boxes[:, 2:] - boxes[:, :2]
+    return ~torch.isfinite(boxes).all(dim=1) | ~(sides >= MIN_BOX_SIZE_PX).all(dim=1)
+
+
+def describe_boxes(det: Detections, which: torch.Tensor) -> str:
+    """``obj_id N box [x1, y1, x2, y2]; ...`` of the detections ``which`` (bool [N]), for messages."""
+    idx = which.nonzero().flatten().tolist()
+    listed = [f"obj_id {int(det.obj_ids[i])} box {[round(float(v), 2) for v in det.boxes[i]]}" for i in idx[:5]]
+    return "; ".join(listed) + (f"; ... ({len(idx)} in all)" if len(idx) > 5 else "")
 
 
 # ----------------------------------------------------------------------------- masks <-> RLE

@@ -20,9 +20,11 @@ from typing import Callable
 import numpy as np
 
 from cosy_lite.bop.dataset import BopDataset, ImageRecord
-from cosy_lite.bop.detections import Detections, oracle_detections, read_detections_json
+from cosy_lite.bop.detections import (MIN_BOX_SIZE_PX, Detections, degenerate_boxes, oracle_detections,
+                                      read_detections_json)
 from cosy_lite.bop.results import PoseEstimate, results_filename, write_results_csv
 from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
+from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, SetupError
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
 
@@ -42,6 +44,12 @@ def _oracle_source(dataset: BopDataset, with_masks: bool) -> DetectionSource:
 
 def _json_source(path: Path, dataset: BopDataset, with_masks: bool) -> DetectionSource:
     per_image = read_detections_json(path, valid_obj_ids=dataset.obj_ids, with_masks=with_masks)
+    targets = targets_by_image(dataset.test_targets())
+    if per_image and not set(per_image) & set(targets):
+        some = sorted(per_image)[:3]
+        raise BopFormatError(path, "scene_id/image_id", (
+            f"none of its {len(per_image)} images (e.g. (scene_id, image_id) {some}) is a target image of "
+            f"{dataset.test_targets_path}: detections of another dataset or split?"))
 
     def source(rec: ImageRecord) -> Detections:
         det = per_image.get((rec.scene_id, rec.im_id))
@@ -63,7 +71,8 @@ def detection_source(spec: str | Path | None, dataset: BopDataset, with_masks: b
         return DETECTION_SOURCES[str(spec)](dataset, with_masks)
     path = Path(spec)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: detections file not found (--detections takes 'oracle' or a BOP22 JSON file)")
+        raise BopFormatError(path, "--detections", f"detections file not found (expected {sorted(DETECTION_SOURCES)} "
+                             "or a BOP22 JSON file)")
     return _json_source(path, dataset, with_masks)
 
 
@@ -73,7 +82,8 @@ class RunSummary:
 
     image_times: the ``time`` of each image (s); timings: seconds per stage summed over images
     (:data:`~cosy_lite.inference.predictor.TIMING_KEYS`); n_invalid: estimates not written (invalid
-    pose); problems: the results checker's findings on the CSV.
+    pose); n_degenerate: detections skipped for a box side under ``MIN_BOX_SIZE_PX``; problems:
+    the results checker's findings on the CSV.
     """
 
     csv_path: Path
@@ -87,6 +97,7 @@ class RunSummary:
     icp_accepted: int = 0
     icp_runs: int = 0
     no_depth: int = 0  # images without a depth file (ICP asked for but skipped)
+    n_degenerate: int = 0
     vis_paths: list[Path] = field(default_factory=list)
     problems: list[Problem] = field(default_factory=list)
 
@@ -102,6 +113,9 @@ class RunSummary:
                f"time per image: mean {np.mean(self.image_times or [0.0]):.3f} s; ms per image: {per}"]
         if self.icp_runs:
             out.append(f"ICP accepted {self.icp_accepted} of {self.icp_runs} poses")
+        if self.n_degenerate:
+            out.append(f"WARNING: {self.n_degenerate} detections with a box side under {MIN_BOX_SIZE_PX} px "
+                       "(or non-finite) skipped: no pose estimated for them")
         if self.no_depth:
             out.append(f"WARNING: {self.no_depth} images have no depth file: ICP skipped on them")
         if self.vis_paths:
@@ -179,10 +193,19 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         depth = dataset.load_depth(rec) if predictor.icp and rec.depth_path is not None else None
         if predictor.icp and depth is None:
             summary.no_depth += 1
+        if depth is not None and depth.shape != rgb.shape[:2]:
+            raise BopFormatError(rec.depth_path, "size", f"{depth.shape[1]}x{depth.shape[0]} pixels, but the image "
+                                 f"{rec.rgb_path} is {rgb.shape[1]}x{rgb.shape[0]}")
         given = source(rec) if source is not None else None
+        if given is not None and given.masks is not None and len(given) and given.masks.shape[1:] != rgb.shape[:2]:
+            raise BopFormatError(detections, "segmentation.size", (
+                f"masks of scene {scene_id} image {im_id} are {list(given.masks.shape[1:])} (H, W); "
+                f"the image {rec.rgb_path} is {list(rgb.shape[:2])}"))
         t0 = time.perf_counter()
         det = given if given is not None else predictor.detect(rgb)
-        det = select_top_instances(det, per_image[(scene_id, im_id)])
+        bad = degenerate_boxes(det)
+        summary.n_degenerate += int(bad.sum())
+        det = select_top_instances(det.select(~bad), per_image[(scene_id, im_id)])
         est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
         t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
         summary.image_times.append(t_image)

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from cosy_lite.bop import io
-from cosy_lite.bop.detections import Detections
+from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_boxes, describe_boxes
 from cosy_lite.errors import BopFormatError, CosyLiteError
 from cosy_lite.inference import iterate_np
 from cosy_lite.inference.icp import IcpConfig, IcpResult
@@ -510,7 +510,9 @@ class Predictor:
                 unknown), used by ICP (when enabled) only;
             detections: boxes (+ masks for ICP), obj_ids, scores; None: run the detector;
             obj_ids: keep only detections of these objects.
-        Returns: :class:`PoseEstimates` by decreasing score (empty when nothing is detected).
+        Returns: :class:`PoseEstimates` by decreasing score (empty when nothing is detected);
+        detections whose box has a side under :data:`~cosy_lite.bop.detections.MIN_BOX_SIZE_PX`
+        (or a non-finite corner) are skipped with a RuntimeWarning: no pose from a box of nothing.
         """
         rgb, K = _as_rgb(rgb), _as_K(K)
         H, W = rgb.shape[:2]
@@ -521,6 +523,11 @@ class Predictor:
             detections = self.detect(rgb)
             clock.seconds["detection"] = detections.time_s
         det = self._select(detections, obj_ids, from_detector)
+        if (bad := degenerate_boxes(det)).any():
+            warnings.warn(f"Predictor: {int(bad.sum())} detection(s) with a box side under {MIN_BOX_SIZE_PX} px or "
+                          f"non-finite skipped (no pose estimated): {describe_boxes(det, bad)}", RuntimeWarning,
+                          stacklevel=2)
+            det = det.select(~bad)
         if len(det) == 0:
             return PoseEstimates.empty(self._timings(clock, t_start))
         with _flush_denormals():

@@ -1,0 +1,124 @@
+"""Bad detections at inference: a box of zero width/height (or NaN) is skipped with a warning, never
+a pose hundreds of metres away; detection files of another split, masks of another size, broken
+entries and missing files are one error naming the file and the field."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from bop_fixtures import write_tiny_bop
+from torch import nn
+
+from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.bop.detections import Detections, degenerate_boxes
+from cosy_lite.bop.results import read_results_csv
+from cosy_lite.errors import BopFormatError
+from cosy_lite.inference.bop_run import run_on_split
+from cosy_lite.inference.loaders import PoseModel
+from cosy_lite.inference.predictor import ObjectModels, Predictor, _objects_renderer
+
+CROP = (60, 80)
+MAX_DEPTH_M = 10.0  # the fixture's objects are 0.7-0.9 m away
+
+
+class _Still(nn.Module):
+    """A pose network whose update is the identity (zeros, as an untrained head)."""
+
+    def forward(self, x):
+        return torch.zeros(len(x), 9)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> BopDataset:
+    return BopDataset(write_tiny_bop(tmp_path_factory.mktemp("bop")))
+
+
+@pytest.fixture(scope="module")
+def predictor(dataset) -> Predictor:
+    objects, renderer, _ = _objects_renderer(ObjectModels(dataset.models_dir), [1, 2], 200, icp=False)
+    return Predictor(PoseModel(_Still(), "coarse", CROP, [1, 2]), None, objects, renderer, n_refiner_iterations=0)
+
+
+def _det(boxes: list[list[float]], obj_ids: list[int]) -> Detections:
+    return Detections(torch.tensor(boxes, dtype=torch.float32), torch.tensor(obj_ids),
+                      torch.linspace(0.9, 0.5, len(obj_ids)))
+
+
+GOOD = [200.0, 150.0, 260.0, 230.0]
+
+
+@pytest.mark.parametrize("bad", [[100.0, 100.0, 100.0, 150.0], [100.0, 100.0, 180.0, 100.0],
+                                 [100.0, 100.0, 100.5, 150.0], [float("nan"), 100.0, 120.0, 150.0],
+                                 [100.0, 100.0, 60.0, 150.0]],
+                         ids=["zero-width", "zero-height", "half-pixel", "nan", "inverted"])
+def test_degenerate_box_is_skipped_with_a_warning(dataset, predictor, bad):
+    rec = next(dataset.images("test"))
+    det = _det([bad, GOOD], [1, 2])
+    assert degenerate_boxes(det).tolist() == [True, False]
+    with pytest.warns(RuntimeWarning, match=r"1 detection\(s\) with a box side under 1.0 px .* skipped"):
+        est = predictor.predict(dataset.load_rgb(rec), rec.camera.K, detections=det)
+    assert est.obj_ids.tolist() == [2] and bool(est.valid.all())
+    assert float(est.TCO[0, 2, 3]) < MAX_DEPTH_M
+
+
+def test_one_pixel_box_is_still_estimated(dataset, predictor):
+    rec = next(dataset.images("test"))
+    est = predictor.predict(dataset.load_rgb(rec), rec.camera.K, detections=_det([[100.0, 100.0, 101.0, 101.0]], [1]))
+    assert len(est) == 1
+
+
+def _detections_file(path: Path, entries: list[dict]) -> Path:
+    path.write_text(json.dumps(entries))
+    return path
+
+
+def _entry(scene_id=0, image_id=0, category_id=1, bbox=(180.0, 120.0, 90.0, 70.0), **extra) -> dict:
+    return {"scene_id": scene_id, "image_id": image_id, "category_id": category_id, "score": 0.8,
+            "bbox": list(bbox), "time": 0.1, **extra}
+
+
+def test_zero_size_box_in_a_detections_file_is_skipped_and_reported(dataset, predictor, tmp_path):
+    path = _detections_file(tmp_path / "det_tiny-test.json", [
+        _entry(bbox=(300.0, 200.0, 0.0, 40.0)), _entry(category_id=2), _entry(image_id=1)])
+    summary = run_on_split(predictor, dataset, tmp_path, detections=path, progress=False)
+    assert summary.n_degenerate == 1 and summary.ok
+    assert any("1 detections with a box side under 1.0 px" in line for line in summary.lines())
+    rows = read_results_csv(summary.csv_path)
+    assert sorted((e.im_id, e.obj_id) for e in rows) == [(0, 2), (1, 1)]
+    assert max(e.TCO[2, 3] for e in rows) < MAX_DEPTH_M
+
+
+@pytest.mark.parametrize("entries, fld, words", [
+    ([_entry(scene_id=7), _entry(scene_id=7, image_id=1)], "scene_id/image_id", "none of its 2 images"),
+    ([_entry(bbox=(10.0, 10.0, -5.0, 20.0))], "[0].bbox", "width and height must be >= 0"),
+    ([_entry(category_id=9)], "[0].category_id", "unknown obj_id 9"),
+    ([_entry(score=float("nan"))], "[0].score", "finite number"),
+    ([_entry(image_id="0")], "[0].image_id", "expected an integer"),
+    ({"scene_id": 0}, "", "expected a JSON list"),
+], ids=["other-split", "negative-width", "unknown-object", "nan-score", "string-id", "not-a-list"])
+def test_broken_detections_file_names_the_field(dataset, predictor, tmp_path, entries, fld, words):
+    path = _detections_file(tmp_path / "det.json", entries)
+    with pytest.raises(BopFormatError) as e:
+        run_on_split(predictor, dataset, tmp_path, detections=path, progress=False)
+    assert e.value.path == str(path) and e.value.field == fld and words in e.value.problem, str(e.value)
+
+
+def test_masks_of_another_size_are_refused(dataset, predictor, tmp_path):
+    from cosy_lite.bop.detections import mask_to_rle
+
+    mask = np.zeros((240, 320), bool)
+    mask[50:90, 60:120] = True
+    path = _detections_file(tmp_path / "det.json", [_entry(segmentation=mask_to_rle(mask))])
+    with_icp = Predictor(predictor.coarse, None, predictor.objects, predictor.renderer, n_refiner_iterations=0,
+                         icp=True)
+    with pytest.raises(BopFormatError, match=r"det\.json \[segmentation\.size\]: masks of scene 0 image 0 are \[240, "):
+        run_on_split(with_icp, dataset, tmp_path, detections=path, progress=False)
+
+
+def test_missing_detections_file(dataset, predictor, tmp_path):
+    with pytest.raises(BopFormatError, match=r"nothere\.json \[--detections\]: detections file not found"):
+        run_on_split(predictor, dataset, tmp_path, detections=tmp_path / "nothere.json", progress=False)
