@@ -191,3 +191,26 @@ def test_empty_training_set_is_an_error(tmp_path):
     task.train_dataset = lambda: torch.utils.data.TensorDataset(torch.zeros(0, 8), torch.zeros(0, 3))
     with pytest.raises(ValueError, match="training set is empty"):
         _run(tmp_path, task=task)
+
+
+def test_non_finite_loss_is_an_expected_error_naming_the_run(tmp_path):
+    from cosy_lite.train.loop import DivergedError
+
+    task = ToyTask()
+    task.compute_losses = lambda model, batch, step, device: {"total": model(batch[0]).sum() * float("nan")}
+    with pytest.raises(DivergedError, match=r"step 0: non-finite loss \{.total.: nan\}; expected finite losses"):
+        _run(tmp_path, task=task)
+
+
+def test_resume_from_a_checkpoint_of_another_model_names_the_file(tmp_path):
+    from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
+
+    _run(tmp_path, steps=5)
+    ck = load_checkpoint(tmp_path / "checkpoint.pt")
+    save_checkpoint(tmp_path / "checkpoint.pt", Checkpoint(ck.kind, {"w": torch.ones(3)}, ck.config, ck.step,
+                                                           ck.train_state))
+    with pytest.raises(CheckpointError, match=r"checkpoint\.pt: does not fit this model/optimiser \(RuntimeError"):
+        _run(tmp_path, resume=True, steps=10)
+    save_checkpoint(tmp_path / "checkpoint.pt", Checkpoint(ck.kind, ck.model, ck.config, ck.step, {}))
+    with pytest.raises(CheckpointError, match=r"field 'train_state' lacks \['optimizer', 'scheduler'\]"):
+        _run(tmp_path, resume=True, steps=10)
