@@ -8,6 +8,7 @@ and exit status :data:`EXIT_BAD_INPUT`; anything else is a bug and keeps its tra
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Callable
@@ -64,12 +65,32 @@ def describe_os_error(e: OSError) -> str:
     return f"{' -> '.join(names)}: {reason}" if names else reason
 
 
+def _subclass_names(cls: type) -> set[str]:
+    return {cls.__name__}.union(*(_subclass_names(c) for c in cls.__subclasses__()))
+
+
+def worker_error_message(e: BaseException) -> str | None:
+    """The message of an expected error raised in a torch DataLoader worker, or None.
+
+    torch re-raises a worker's exception in the main process as a RuntimeError ``Caught NAME in
+    DataLoader worker process K. Original Traceback ...`` whose last line is ``module.NAME: msg``.
+    """
+    text = str(e)
+    found = re.match(r"Caught (\w+) in DataLoader worker process \d+", text)
+    if not isinstance(e, RuntimeError) or found is None:
+        return None
+    if found.group(1) not in _subclass_names(CosyLiteError) | _subclass_names(OSError):
+        return None
+    last = text.rstrip().splitlines()[-1]
+    return last.split(": ", 1)[1] if ": " in last else last
+
+
 def run_reporting_errors(main: Callable[[], int], prog: str) -> int:
     """Run an entry point: expected errors -> ``PROG: error: MESSAGE`` on stderr, exit status 2.
 
     Expected: :class:`CosyLiteError` (files, configs, arguments) and OSError (the file system
-    refused: missing file, permission, disk full). Ctrl-C exits with 130 and one line. Anything
-    else propagates with its traceback (a bug).
+    refused: missing file, permission, disk full), also when raised in a DataLoader worker.
+    Ctrl-C exits with 130 and one line. Anything else propagates with its traceback (a bug).
     """
     try:
         return int(main() or 0)
@@ -77,6 +98,10 @@ def run_reporting_errors(main: Callable[[], int], prog: str) -> int:
         print(f"{prog}: error: {' '.join(str(e).splitlines())}", file=sys.stderr)
     except OSError as e:
         print(f"{prog}: error: {describe_os_error(e)}", file=sys.stderr)
+    except RuntimeError as e:
+        if (msg := worker_error_message(e)) is None:
+            raise
+        print(f"{prog}: error: {msg} (in a data loading worker)", file=sys.stderr)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -10,9 +10,10 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from cosy_lite.config import load_config
-from cosy_lite.errors import ConfigError, run_reporting_errors
+from cosy_lite.errors import BopFormatError, ConfigError, run_reporting_errors
 # (torchvision, imported by the training tasks, before anything renders: see cosy_lite/inference/predictor.py)
 from cosy_lite.train.pose_task import PoseTrainConfig
 
@@ -163,3 +164,28 @@ def test_reporter_keeps_the_traceback_of_a_bug():
         run_reporting_errors(lambda: 1 // 0, "prog")
     with pytest.raises(KeyError):  # not an input error: a bug to see whole
         run_reporting_errors(lambda: {}["x"], "prog")
+
+    def runtime_bug():
+        raise RuntimeError("Caught ValueError in DataLoader worker process 0.\nValueError: a bug in a worker")
+
+    with pytest.raises(RuntimeError):
+        run_reporting_errors(runtime_bug, "prog")
+
+
+class _BrokenImages(torch.utils.data.Dataset):
+    def __len__(self):
+        return 4
+
+    def __getitem__(self, i):
+        raise BopFormatError(f"/data/train_pbr/000000/rgb/{i:06d}.png", "", "cannot decode image")
+
+
+def test_reporter_names_a_bad_file_read_in_a_data_loading_worker(capsys):
+    """train.py's DataLoader workers re-raise a BopFormatError as a RuntimeError with a traceback text."""
+    def read_all():
+        for _ in torch.utils.data.DataLoader(_BrokenImages(), batch_size=2, num_workers=1):
+            pass
+
+    assert run_reporting_errors(read_all, "train.py") == 2
+    _one_error(capsys.readouterr().err, "train.py: error: /data/train_pbr/000000/rgb/000000.png: cannot decode image",
+               "(in a data loading worker)")
