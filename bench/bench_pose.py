@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     ds = BopDataset(args.dataset)
     def load(path, kind):
         ck = load_checkpoint(path, kind=kind)
-        net = build_pose_net(ck.meta["net"], kind)
+        net = build_pose_net(ck.meta["net"], kind, load_weights=False)
         net.load_state_dict(ck.model)
         return net.eval(), ck
 

@@ -144,3 +144,20 @@ def test_missing_files_are_named(tmp_path: Path):
     shutil.move(scene_dir(root) / "scene_gt_info.json", tmp_path / "x.json")
     with pytest.raises(BopFormatError, match="scene_gt_info.json"):
         PoseDataset(BopDataset(root, "tiny"), "test")
+
+
+def test_cached_items_equal_file_items(root: Path):
+    files = PoseDataset(BopDataset(root, "tiny"), SPLIT, min_visib_fract=0.1, min_px=0)
+    cached = PoseDataset(BopDataset(root, "tiny"), SPLIT, min_visib_fract=0.1, min_px=0)
+    train, _ = split_train_val(cached, n_val_images=1, seed=0)
+    train.cache_images(progress=False)
+    assert train.cache is not None and train.cache.rgb.dtype == np.uint8
+    n_mask_px_differ = 0
+    for i in range(len(train)):
+        a = train[i]
+        b = files[int(np.nonzero(files.index == train.index[i])[0][0])]
+        assert (a.im_id, a.gt_idx) == (b.im_id, b.gt_idx)
+        assert torch.equal(a.rgb, b.rgb) and torch.equal(a.mask_any, b.mask_any) and torch.equal(a.TCO, b.TCO)
+        n_mask_px_differ += int((a.mask != b.mask).sum())  # only where visible masks overlap (15 mm tolerance)
+        assert int((a.mask & ~b.mask).sum()) == 0
+    assert n_mask_px_differ <= 0.01 * sum(int(train[i].mask.sum()) for i in range(len(train)))

@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.data.augmentation import StrongAugmentation
+from cosy_lite.data.image_cache import ImageCache
 from cosy_lite.data.instances import check_obj_ids, load_masks, load_rgb, scan_split, split_train_val
 from cosy_lite.structures import PoseBatch, PoseSample
 
@@ -52,6 +53,7 @@ class PoseDataset(Dataset):
         self.augmentation = augmentation
         self.table = scan_split(dataset, split, scene_ids)
         self.index = np.nonzero(self.table.select(self.obj_ids, min_visib_fract, min_px))[0]  # rows of the table
+        self.cache: ImageCache | None = None
 
     def __len__(self) -> int:
         return len(self.index)
@@ -75,15 +77,24 @@ class PoseDataset(Dataset):
         ids, counts = np.unique(self.table.obj_ids[self.index], return_counts=True)
         return dict(zip(ids.tolist(), counts.tolist()))
 
+    def cache_images(self, progress: bool = True) -> None:
+        """Decode this dataset's images and masks once into memory (:class:`ImageCache`); items are
+        then read from it (the same values as from the files)."""
+        self.cache = ImageCache.load(self.dataset, self.table, self.table.image_idx[self.index], progress)
+
     def __getitem__(self, i: int) -> PoseSample:
         t = self.table
         n = int(self.index[i])
         row = int(t.image_idx[n])
         scene_id, im_id, gt_idx = int(t.scene_ids[row]), int(t.im_ids[row]), int(t.gt_idx[n])
-        rgb = load_rgb(self.dataset, self.split, scene_id, im_id)
-        masks = load_masks(self.dataset, self.split, scene_id, im_id, list(range(int(t.n_gt[row]))), rgb.shape[:2])
+        if self.cache is not None:
+            rgb, mask, any_mask = self.cache.image(row), self.cache.instance_mask(row, gt_idx), self.cache.any_mask(row)
+        else:
+            rgb = load_rgb(self.dataset, self.split, scene_id, im_id)
+            masks = load_masks(self.dataset, self.split, scene_id, im_id, list(range(int(t.n_gt[row]))), rgb.shape[:2])
+            mask, any_mask = masks[gt_idx], masks.any(axis=0)
         rgb_t = torch.from_numpy(rgb).permute(2, 0, 1).contiguous()
-        mask_any = torch.from_numpy(masks.any(axis=0))
+        mask_any = torch.from_numpy(any_mask)
         if self.augmentation is not None:
             rgb_t = self.augmentation(rgb_t[None], mask_any[None])[0]
         return PoseSample(
@@ -92,7 +103,7 @@ class PoseDataset(Dataset):
             TCO=torch.from_numpy(t.TCO[n].copy()),
             obj_id=int(t.obj_ids[n]),
             bbox_visib=torch.from_numpy(t.bbox_visib[n].copy()),
-            mask=torch.from_numpy(masks[gt_idx].copy()),
+            mask=torch.from_numpy(mask.copy()),
             mask_any=mask_any,
             scene_id=scene_id,
             im_id=im_id,

@@ -66,7 +66,7 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
     obj_ids = _meta_field(ckpt, path, "obj_ids")
     try:
         cfg = PoseNetConfig(**net_cfg)
-        net = build_pose_net(cfg, kind)
+        net = build_pose_net(cfg, kind, load_weights=False)
         net.load_state_dict(ckpt.model)
     except (TypeError, ValueError, RuntimeError) as e:
         raise CheckpointError(path, f"weights do not fit the network of meta.net {net_cfg} "

