@@ -315,7 +315,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             losses = task.compute_losses(train_model, batch, step, device)
         total = losses["total"]
         if not torch.isfinite(total):
-            raise DivergedError(f"{out_dir}: step {step}: non-finite loss {({k: float(v) for k, v in losses.items()})}; "
+            raise DivergedError(f"{out_dir}: step {step}: non-finite loss {({k: float(v.detach()) for k, v in losses.items()})}; "
                                 "expected finite losses (lower optim.lr, check the data)")
         optimizer.zero_grad(set_to_none=True)
         total.backward()
