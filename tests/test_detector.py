@@ -55,8 +55,8 @@ def test_label_map_round_trip():
 
 
 def test_builders_use_trainable_norm_and_know_their_names():
-    for name in DETECTORS:
-        net = Detector(LabelMap(OBJ_IDS), DetectorConfig(name=name, fpn_channels=32)).net
+    for name in DETECTORS:  # from scratch (the pretrained trunk's frozen parts: test_detector_pretrained.py)
+        net = Detector(LabelMap(OBJ_IDS), DetectorConfig(name=name, fpn_channels=32, pretrained=False)).net
         assert not any(isinstance(m, FrozenBatchNorm2d) for m in net.modules()), name
         assert all(p.requires_grad for p in net.parameters()), name
         assert net.roi_heads.box_predictor.cls_score.out_features == 4

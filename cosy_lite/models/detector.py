@@ -210,7 +210,6 @@ DETECTORS: dict[str, DetectorSpec] = {
     "maskrcnn_resnet18_fpn": DetectorSpec(_resnet_fpn, tvm.resnet18, 5),
     "maskrcnn_mobilenet_v3_large_fpn": DetectorSpec(_mobilenet_fpn, tvm.mobilenet_v3_large, 4),
     "maskrcnn_lite0_fpn": DetectorSpec(_lite_fpn, "efficientnet_lite0", 5),  # ImageNet-pretrained (cfg.pretrained)
-    "maskrcnn_lite1_fpn": DetectorSpec(_lite_fpn, "efficientnet_lite1", 5),
 }
 
 
