@@ -60,10 +60,10 @@ def infer_runs(cfg: DemoConfig) -> list[InferRun]:
     ]
 
 
-def _run(cmd: list[str], what: str) -> None:
+def _run(cmd: list[str], what: str, env: dict[str, str] | None = None) -> None:
     print(f"\n=== {what}\n$ {' '.join(cmd)}", flush=True)
     t = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=REPO)
+    proc = subprocess.run(cmd, cwd=REPO, env=None if env is None else {**os.environ, **env})
     if proc.returncode != 0:
         raise SystemExit(f"demo: step '{what}' failed (exit {proc.returncode}); fix it and re-run: finished steps are skipped")
     print(f"=== {what}: {time.perf_counter() - t:.0f} s", flush=True)
@@ -83,19 +83,64 @@ def prepare_dataset(cfg: DemoConfig) -> Path:
     return root
 
 
+def train_command(cfg: DemoConfig, root: Path, model: str) -> list[str]:
+    """``train.py`` for ``model`` with the demo profile and budget; the detector as two single-threaded
+    DDP processes (torchrun), which train 1.9x faster than one two-threaded process on 2 cores."""
+    run_dir = cfg.runs / model
+    args = ["train.py", "--dataset", str(root), "--model", model, "--profile", "demo", "--out", str(run_dir)]
+    if (run_dir / "checkpoint.pt").is_file():
+        args.append("--resume")
+    args.append(f"loop.max_minutes={cfg.train_minutes[model]}")
+    if model == "detector":
+        return _py("-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", *args, "loop.num_workers=0")
+    return _py(*args)
+
+
+def _run_parallel(cmds: list[list[str]], whats: list[str], logs: list[Path]) -> None:
+    """Run ``cmds`` at the same time, one thread each (stdout/stderr to ``logs``); fail if any fails."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    procs = []
+    for cmd, what, log in zip(cmds, whats, logs):
+        print(f"\n=== {what} (log: {log})\n$ {' '.join(cmd)}", flush=True)
+        log.parent.mkdir(parents=True, exist_ok=True)
+        procs.append((subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT), what, log))
+    t = time.perf_counter()
+    failed = []
+    for proc, what, log in procs:
+        if proc.wait() != 0:
+            failed.append(f"'{what}' (exit {proc.returncode}, see {log})")
+        else:
+            print(f"=== {what}: {time.perf_counter() - t:.0f} s; last lines of {log}:", flush=True)
+            print("\n".join(log.read_text(errors="replace").splitlines()[-8:]), flush=True)
+    if failed:
+        raise SystemExit(f"demo: {', '.join(failed)} failed; fix it and re-run: finished steps are skipped")
+
+
 def train_models(cfg: DemoConfig, root: Path) -> None:
+    """The detector (both cores), then the coarse model and the refiner side by side (one core each)."""
+    todo = []
     for model in MODELS:
-        run_dir = cfg.runs / model
-        if (run_dir / "DONE").is_file():
-            print(f"=== train {model}: done before ({run_dir})")
-            continue
-        cmd = _py("train.py", "--dataset", str(root), "--model", model, "--profile", "demo", "--out", str(run_dir),
-                  f"loop.max_minutes={cfg.train_minutes[model]}")
-        if (run_dir / "checkpoint.pt").is_file():
-            cmd.insert(cmd.index("--out"), "--resume")
-        _run(cmd, f"train {model} ({cfg.train_minutes[model]:g} min budget)")
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "DONE").write_text("trained by cosy-lite demo\n")
+        if (cfg.runs / model / "DONE").is_file():
+            print(f"=== train {model}: done before ({cfg.runs / model})")
+        else:
+            todo.append(model)
+    if "detector" in todo:
+        _run(train_command(cfg, root, "detector"), f"train detector ({cfg.train_minutes['detector']:g} min budget)",
+             env={"OMP_NUM_THREADS": "1"})
+        _mark_done(cfg, "detector")
+    pose = [m for m in todo if m != "detector"]
+    if pose:
+        _run_parallel([train_command(cfg, root, m) for m in pose],
+                      [f"train {m} ({cfg.train_minutes[m]:g} min budget)" for m in pose],
+                      [cfg.runs / f"{m}.log" for m in pose])
+        for m in pose:
+            _mark_done(cfg, m)
+
+
+def _mark_done(cfg: DemoConfig, model: str) -> None:
+    run_dir = cfg.runs / model
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "DONE").write_text("trained by cosy-lite demo\n")
 
 
 def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:

@@ -17,7 +17,8 @@ from cosy_lite import demo
 @pytest.fixture
 def recorded(monkeypatch):
     calls: list[list[str]] = []
-    monkeypatch.setattr(demo, "_run", lambda cmd, what: calls.append(cmd))
+    monkeypatch.setattr(demo, "_run", lambda cmd, what, env=None: calls.append(cmd))
+    monkeypatch.setattr(demo, "_run_parallel", lambda cmds, whats, logs: calls.extend(cmds))
     return calls
 
 
@@ -34,8 +35,11 @@ def test_training_runs_each_model_once_with_its_budget_and_resumes_unfinished_ru
     demo.train_models(cfg, tmp_path / "data" / "ycbv-synth")
     assert [c[c.index("--model") + 1] for c in recorded] == ["detector", "coarse"]
     det, coarse = recorded
-    assert "--resume" not in det and "loop.max_minutes=5.0" in det
-    assert "--resume" in coarse and "loop.max_minutes=4.0" in coarse
+    budgets = cfg.train_minutes
+    assert "--resume" not in det and f"loop.max_minutes={budgets['detector']}" in det
+    assert det[1:6] == ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]  # two DDP processes
+    assert "loop.num_workers=0" in det
+    assert "--resume" in coarse and f"loop.max_minutes={budgets['coarse']}" in coarse
     assert (cfg.runs / "detector" / "DONE").is_file() and (cfg.runs / "coarse" / "DONE").is_file()
 
 

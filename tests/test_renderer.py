@@ -350,3 +350,23 @@ def test_survives_pyrender_terminating_the_display(renderer, meshes):
     both = before.mask[0] & (depth[0] > 0)  # and pyrender agrees (it samples 4x MSAA, so edges differ)
     assert _iou(before.mask[0], depth[0] > 0) > 0.97
     np.testing.assert_allclose(before.depth[0][both], depth[0][both], atol=1e-3)  # MSAA: depth off-centre
+
+
+def test_headlight_shading_follows_the_face_orientation(meshes):
+    """A box face seen head-on keeps its colour; turned by 60 deg about y it gets
+    ambient + (1 - ambient) cos(angle) of it (the light sits at the camera); depth is the flat render's."""
+    from cosy_lite.render.renderer import AMBIENT
+
+    head_on, turned = _T(t=(0.0, 0.0, 0.7)), _T(_rot("y", 60.0), t=(0.0, 0.0, 0.7))
+    with PyrenderRenderer({BOX: meshes[BOX]}) as flat, PyrenderRenderer({BOX: meshes[BOX]}, shading="headlight") as lit:
+        a, b = flat.render([BOX, BOX], np.stack([head_on, turned]), K, RES), lit.render([BOX, BOX], np.stack([head_on, turned]), K, RES)
+    np.testing.assert_array_equal(a.depth, b.depth)
+    m = b.mask[0]
+    np.testing.assert_allclose(b.rgb[0][m].mean(0), BOX_RGBA[:3], atol=1.5)  # normal . view ~ 1 at the centre
+    # turned: two faces visible, at 60 and 30 deg to the viewing rays (rays off-axis by a few degrees)
+    levels = np.unique(np.round(b.rgb[1][b.mask[1]][:, 0] / BOX_RGBA[0], 1))
+    for cos in (np.cos(np.radians(60)), np.cos(np.radians(30))):
+        assert np.any(np.abs(levels - (AMBIENT + (1 - AMBIENT) * cos)) <= 0.1), (levels, cos)
+    assert np.all(b.rgb[1][b.mask[1]] <= np.array(BOX_RGBA[:3]) + 1)
+    with pytest.raises(ValueError, match="shading must be one of"):
+        PyrenderRenderer({BOX: meshes[BOX]}, shading="phong")

@@ -43,6 +43,7 @@ class PoseModel:
     crop_resolution: Size
     obj_ids: list[int]
     path: Path | None = None
+    render_shading: str = "flat"  # how its renderings were made in training (PoseNetConfig.render_shading)
 
     def describe(self) -> str:
         return str(self.path) if self.path is not None else f"{self.kind} model (built in code)"
@@ -74,7 +75,7 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
     h, w = (int(v) for v in cfg.crop_resolution)
     if not obj_ids:
         raise CheckpointError(path, "field 'meta.obj_ids' is empty")
-    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path)
+    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, cfg.render_shading)
 
 
 def load_detector(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
@@ -132,7 +133,8 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
         if entry.kind != role:
             raise OnnxModelError(manifest.path, f"models.{name}.kind", f"{entry.kind!r}, expected {role!r}")
         net = OnnxPoseNet(manifest.file(name), threads, role, entry, name, spinning)
-        pose[role] = PoseModel(net, role, net.crop_resolution, net.obj_ids, net.path)
+        pose[role] = PoseModel(net, role, net.crop_resolution, net.obj_ids, net.path,
+                               str(net.config.get("render_shading", "flat")))
     if pose["coarse"] is None:
         raise OnnxModelError(manifest.path, "models.coarse", "missing: the export has no coarse model "
                              f"(it has {sorted(manifest.models)})")

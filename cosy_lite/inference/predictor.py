@@ -293,8 +293,17 @@ def _object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
     return ObjectModels(Path(models_dir))
 
 
-def _objects_renderer(models: ObjectModels, ids: list[int], n_points: int | None, icp: bool) -> tuple[Any, Any, Any]:
-    """(ObjectTable of ``ids``, a renderer of ``models``, ICP symmetry sets or None)."""
+def render_shading(coarse: PoseModel, refiner: PoseModel | None) -> str:
+    """The renderer shading both pose networks were trained with (SetupError if they differ)."""
+    if refiner is not None and refiner.render_shading != coarse.render_shading:
+        raise SetupError(f"the coarse model ({coarse.describe()}) was trained on {coarse.render_shading!r} renderings, "
+                         f"the refiner ({refiner.describe()}) on {refiner.render_shading!r}: they need one renderer")
+    return coarse.render_shading
+
+
+def _objects_renderer(models: ObjectModels, ids: list[int], n_points: int | None, icp: bool,
+                      shading: str = "flat") -> tuple[Any, Any, Any]:
+    """(ObjectTable of ``ids``, a renderer of ``models`` with ``shading``, ICP symmetry sets or None)."""
     from cosy_lite.geometry.symmetries import symmetry_transforms
     from cosy_lite.models.object_table import ObjectTable
     from cosy_lite.render.renderer import PyrenderRenderer
@@ -302,7 +311,7 @@ def _objects_renderer(models: ObjectModels, ids: list[int], n_points: int | None
     kwargs = {} if n_points is None else {"n_points": n_points}
     objects = ObjectTable.from_dataset(models, ids, **kwargs)  # type: ignore[arg-type]
     syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
-    return objects, PyrenderRenderer(models_dir=models.models_dir), syms
+    return objects, PyrenderRenderer(models_dir=models.models_dir, shading=shading), syms
 
 
 class Predictor:
@@ -393,7 +402,8 @@ class Predictor:
         unknown = sorted(set(ids) - set(models.obj_ids))
         if unknown:
             raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
-        objects, renderer, syms = _objects_renderer(models, ids, n_points, icp)
+        objects, renderer, syms = _objects_renderer(models, ids, n_points, icp,
+                                                    render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
         return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
                    syms, device, precision=precision)
@@ -440,7 +450,7 @@ class Predictor:
                                  f"{models.models_dir / 'models_info.json'} (it has {models.obj_ids})")
         if onnx.refiner is None:
             n_refiner_iterations = 0
-        objects, renderer, syms = _objects_renderer(models, ids, n_points, icp)
+        objects, renderer, syms = _objects_renderer(models, ids, n_points, icp, render_shading(onnx.coarse, onnx.refiner))
         return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, n_refiner_iterations, icp,
                    icp_config, syms, "cpu", precision="fp32")
 

@@ -4,7 +4,10 @@ Conventions: ``TCO`` object-to-camera (m), OpenCV camera, ``K`` in pixels, ``res
 Pixel ``(row r, column c)`` is sampled at ``(u, v) = (c + 0.5, r + 0.5)`` (as :mod:`.gl` and the
 BOP toolkit). Depth is the camera z (m) of the visible surface, written by the fragment shader (no
 depth-buffer decoding), 0 on the background. Colours are flat: texture x PBR base colour factor, or
-vertex colours; no lighting (flat). No anti-aliasing: a pixel is covered iff its centre is.
+vertex colours; ``shading="flat"`` (default) draws them as they are, ``"headlight"`` (what the pose
+networks see) shades them by a light at the camera, ``ambient + (1 - ambient) |n . v|`` with face
+normals from screen-space derivatives: without it an untextured object is a flat silhouette with no
+3D shape inside. No anti-aliasing: a pixel is covered iff its centre is.
 
 How it is fast (measured in ``bench/bench_render.py``): one headless GL context per renderer
 (pyrender's EGL platform) and a minimal shader (no per-vertex normal matrix, no lights); each mesh
@@ -195,13 +198,26 @@ layout(location = 0) in vec3 position;
 layout(location = 1) in vec4 uv_or_color;  // uv (textured) or rgba (vertex colours)
 uniform mat4 MVP;    // clip <- object
 uniform vec4 z_row;  // third row of TCO: camera z = dot(z_row, p)
+uniform mat4 MV;     // camera <- object (TCO), for the shaded programs
 out vec4 v_attribute;
 out float v_z;
+out vec3 v_position;  // camera frame
 void main() {
     vec4 p = vec4(position, 1.0);
     gl_Position = MVP * p;
     v_attribute = uv_or_color;
     v_z = dot(z_row, p);
+    v_position = (MV * p).xyz;
+}
+"""
+# Headlight shading: a light at the camera, Lambertian, with the face normal from the screen-space
+# derivatives of the camera-frame position (no normals uploaded); |n.v| so winding does not matter.
+_SHADE = """
+uniform float ambient;
+vec4 shade(vec4 base) {
+    vec3 n = normalize(cross(dFdx(v_position), dFdy(v_position)));
+    float l = ambient + (1.0 - ambient) * abs(dot(n, normalize(v_position)));
+    return vec4(base.rgb * l, base.a);
 }
 """
 _FRAGMENT_SHADERS = {
@@ -223,7 +239,22 @@ in float v_z;
 layout(location = 1) out float depth;
 void main() { depth = v_z; }
 """,
+    "texture_lit": """#version 330 core
+in vec4 v_attribute; in float v_z; in vec3 v_position;
+uniform sampler2D color_texture;
+layout(location = 0) out vec4 color;
+layout(location = 1) out float depth;""" + _SHADE + """
+void main() { color = shade(texture(color_texture, v_attribute.xy)); depth = v_z; }
+""",
+    "color_lit": """#version 330 core
+in vec4 v_attribute; in float v_z; in vec3 v_position;
+layout(location = 0) out vec4 color;
+layout(location = 1) out float depth;""" + _SHADE + """
+void main() { color = shade(v_attribute); depth = v_z; }
+""",
 }
+SHADINGS = ("flat", "headlight")  # flat: the colours as they are; headlight: shaded (see _SHADE)
+AMBIENT = 0.35  # share of the light that does not depend on the surface orientation (headlight)
 
 
 @dataclass
@@ -247,7 +278,7 @@ class _Framebuffer:
 class _GlState:
     context: EglContext
     programs: dict[str, int]
-    uniforms: dict[str, tuple[int, int]]  # program kind -> (MVP, z_row) locations
+    uniforms: dict[str, tuple[int, int, int]]  # program kind -> (MVP, z_row, MV) locations
     max_size: int  # largest framebuffer side (GL_MAX_RENDERBUFFER_SIZE, GL_MAX_VIEWPORT_DIMS)
     meshes: dict[int, _GpuMesh] = field(default_factory=dict)
     framebuffers: dict[Resolution, list[_Framebuffer]] = field(default_factory=dict)  # one per crop in flight
@@ -265,10 +296,14 @@ def _create_gl_state(device_index: int | None) -> _GlState:
         kind: shaders.compileProgram(vs, shaders.compileShader(src, gl.GL_FRAGMENT_SHADER), validate=False)
         for kind, src in _FRAGMENT_SHADERS.items()
     }
-    uniforms = {k: (gl.glGetUniformLocation(p, "MVP"), gl.glGetUniformLocation(p, "z_row"))
+    uniforms = {k: (gl.glGetUniformLocation(p, "MVP"), gl.glGetUniformLocation(p, "z_row"), gl.glGetUniformLocation(p, "MV"))
                 for k, p in programs.items()}
-    gl.glUseProgram(programs["texture"])
-    gl.glUniform1i(gl.glGetUniformLocation(programs["texture"], "color_texture"), 0)
+    for kind in ("texture", "texture_lit"):
+        gl.glUseProgram(programs[kind])
+        gl.glUniform1i(gl.glGetUniformLocation(programs[kind], "color_texture"), 0)
+    for kind in ("texture_lit", "color_lit"):
+        gl.glUseProgram(programs[kind])
+        gl.glUniform1f(gl.glGetUniformLocation(programs[kind], "ambient"), AMBIENT)
     gl.glEnable(gl.GL_DEPTH_TEST)
     gl.glDepthFunc(gl.GL_LESS)
     gl.glFrontFace(gl.GL_CW)  # window y = v mirrors the image: outward CCW faces appear clockwise
@@ -383,9 +418,13 @@ class PyrenderRenderer:
         max_in_flight: int = 64,
         cull_back_faces: bool | None = None,
         device_index: int | None = None,
+        shading: str = "flat",
     ):
         if meshes is None and models_dir is None:
             raise ValueError("PyrenderRenderer needs meshes or a models_dir")
+        if shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
+        self.shading = shading
         if not 0 < znear < zfar:
             raise ValueError(f"need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
         self.meshes: dict[int, trimesh.Trimesh] = {int(k): v for k, v in (meshes or {}).items()}
@@ -445,6 +484,7 @@ class PyrenderRenderer:
             return RenderOutput(rgb, depth, depth > 0)
         MVP = (projection_matrices(K, (H, W), self.znear, self.zfar) @ TCO).astype(np.float32)
         z_rows = np.ascontiguousarray(TCO[:, 2, :], dtype=np.float32)
+        MV = np.ascontiguousarray(TCO, dtype=np.float32)
         with self._lock:
             gls = self._current_gl_state()
             try:
@@ -458,7 +498,7 @@ class PyrenderRenderer:
                     _render_pass(
                         gls, self._framebuffers(gls, (H, W), sl.stop - sl.start), items[sl], MVP[sl], z_rows[sl],
                         [m is not None and m.cull for m in items[sl]], (H, W),
-                        None if rgb is None else rgb[sl], depth[sl],
+                        None if rgb is None else rgb[sl], depth[sl], MV[sl], self.shading == "headlight",
                     )
             finally:
                 gls.context.release()
@@ -556,6 +596,7 @@ class PyrenderRenderer:
 def _render_pass(
     gls: _GlState, fbs: Sequence[_Framebuffer], meshes: Sequence[_GpuMesh | None], MVP: np.ndarray, z_rows: np.ndarray,
     cull: Sequence[bool], resolution: Resolution, rgb: np.ndarray | None, depth: np.ndarray,
+    MV: np.ndarray | None = None, shaded: bool = False,
 ) -> None:
     """Draw item j (None: nothing) into framebuffer j, then read every framebuffer into rgb/depth [j].
 
@@ -576,17 +617,19 @@ def _render_pass(
         gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
         if mesh is None:
             continue
-        kind = "depth" if rgb is None else ("color" if mesh.texture is None else "texture")
+        kind = "depth" if rgb is None else ("color" if mesh.texture is None else "texture") + ("_lit" if shaded else "")
         if kind != program:
             gl.glUseProgram(gls.programs[kind])
             program = kind
         if cull[j] != culling:
             (gl.glEnable if cull[j] else gl.glDisable)(gl.GL_CULL_FACE)
             culling = cull[j]
-        mvp_loc, z_loc = gls.uniforms[kind]
+        mvp_loc, z_loc, mv_loc = gls.uniforms[kind]
         gl.glUniformMatrix4fv(mvp_loc, 1, gl.GL_TRUE, MVP[j])
         gl.glUniform4fv(z_loc, 1, z_rows[j])
-        if kind == "texture":
+        if shaded and MV is not None:
+            gl.glUniformMatrix4fv(mv_loc, 1, gl.GL_TRUE, MV[j])
+        if mesh.texture is not None and rgb is not None:
             gl.glBindTexture(gl.GL_TEXTURE_2D, mesh.texture)
         gl.glBindVertexArray(mesh.vao)
         gl.glDrawElements(gl.GL_TRIANGLES, mesh.n_indices, gl.GL_UNSIGNED_INT, None)

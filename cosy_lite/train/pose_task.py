@@ -48,6 +48,9 @@ class PoseNetConfig:
     pretrained: bool = True  # siamese: ImageNet weights for the trunk
     corr_radius: int = 3  # siamese: cost-volume displacements in stride-8 cells
     width: int = 128  # siamese: fusion channels
+    # how the object is rendered for the network: "headlight" (shaded: 3D shape cues) or "flat"
+    # (colours only); inference renders as the checkpoint says
+    render_shading: str = "headlight"
     # head units -> (6D residual, xy shift as a fraction of the crop width, log depth); see PoseNet.
     # None: the model kind's default (pose_net.OUTPUT_SCALES)
     output_scale: list[float] | None = None
@@ -199,7 +202,7 @@ class PoseTask:
         if self._renderer is None:
             from cosy_lite.render.renderer import PyrenderRenderer
 
-            self._renderer = PyrenderRenderer.from_dataset(self.dataset)
+            self._renderer = PyrenderRenderer.from_dataset(self.dataset, shading=self.cfg.net.render_shading)
         return self._renderer
 
     def train_dataset(self):
