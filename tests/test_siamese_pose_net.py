@@ -31,7 +31,7 @@ def test_soft_argmax_finds_a_peak():
 
 def test_identity_at_init_gradient_and_shape_checks():
     torch.manual_seed(0)
-    net = SiamesePoseNet(pretrained=False, crop_width=128)
+    net = SiamesePoseNet(pretrained=False, crop_resolution=(96, 128), flat_channels=8)
     x = torch.rand(3, 6, 96, 128)
     delta = net(x)
     assert torch.equal(delta, torch.zeros(3, 9))
@@ -61,7 +61,7 @@ def test_onnx_export_matches_torch(tmp_path):
     import onnxruntime as ort
 
     torch.manual_seed(0)
-    net = SiamesePoseNet(pretrained=False, crop_width=128).eval()
+    net = SiamesePoseNet(pretrained=False, crop_resolution=(96, 128), flat_channels=8).eval()
     torch.nn.init.normal_(net.head.weight, std=0.1)
     x = torch.rand(2, 6, 96, 128)
     path = tmp_path / "siam.onnx"
@@ -73,3 +73,25 @@ def test_onnx_export_matches_torch(tmp_path):
         ref = net(xb).detach().numpy()
         got = sess.run(None, {"images": xb.numpy()})[0]
         np.testing.assert_allclose(got, ref, atol=1e-4, rtol=1e-4)
+
+
+def test_flattened_map_needs_a_crop_divisible_by_16():
+    with pytest.raises(ValueError, match="divisible by 16"):
+        SiamesePoseNet(pretrained=False, crop_resolution=(90, 120), flat_channels=8)
+    net = SiamesePoseNet(pretrained=False, crop_resolution=(96, 128), flat_channels=8)
+    assert net.head.in_features == 3 * 256 + 8 * 6 * 8
+
+
+def test_scale_mix_noise_is_smaller_in_training_only():
+    from cosy_lite.train.pose_task import PoseNoiseConfig, initial_poses
+    from cosy_lite.geometry.rotations import rotation_angle_deg
+
+    T = torch.eye(4, dtype=torch.float64).repeat(400, 1, 1)
+    T[:, 2, 3] = 0.8
+    cfg = PoseNoiseConfig(scale_mix=True)
+    g = torch.Generator().manual_seed(0)
+    full = initial_poses("refiner", T, None, None, None, cfg, generator=g)
+    mixed = initial_poses("refiner", T, None, None, None, cfg, generator=g, training=True)
+    a_full = rotation_angle_deg(full[:, :3, :3], T[:, :3, :3]).median()
+    a_mix = rotation_angle_deg(mixed[:, :3, :3], T[:, :3, :3]).median()
+    assert 18 < a_full < 30 and a_mix < 0.7 * a_full  # E[u] = 1/2 of the stds

@@ -17,10 +17,13 @@ task needs instead of learning it:
   ``+-corr_radius`` cells, the optical-flow networks' layer: the shift between rendering and image
   is then a peak position, not something to discover;
 * **spatial soft-argmax** pooling (expected x, y of each channel's spatial softmax) next to the
-  average pooling, so positions in the crop reach the linear head linearly.
+  average pooling, so positions in the crop reach the linear head linearly;
+* optionally (``flat_channels > 0``) the stride-16 map itself, reduced to ``flat_channels`` by a 1x1
+  convolution and flattened into the head: a rotation shows as a displacement field whose
+  pattern over the crop (not its average) tells the axis, and a linear head can read a pattern.
 
 Fusion: [image s8, rendering s8, correlation] -> conv (stride 2) -> + [image s16, rendering s16]
--> 3 convs (one with stride 2) -> pooling -> Linear(9).
+-> 3 convs (one with stride 2 unless ``flat_channels``) -> pooling (+ flattened map) -> Linear(9).
 """
 
 from __future__ import annotations
@@ -68,12 +71,14 @@ class SiamesePoseNet(nn.Module):
             weights then come from a checkpoint).
         corr_radius: displacements of the cost volume, in stride-8 cells (0: no correlation).
         width: channels of the fusion layers (the last ones have ``2 * width``).
-        output_scale, crop_width: as :class:`~cosy_lite.models.pose_net.PoseNet`.
+        output_scale: as :class:`~cosy_lite.models.pose_net.PoseNet`.
+        crop_resolution: (h, w) of the input crops (multiples of 16 with ``flat_channels``).
+        flat_channels: channels of the flattened stride-16 map fed to the head (0: none).
     """
 
     def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
                  corr_radius: int = 3, width: int = 128, output_scale: tuple[float, float, float] = (0.25, 0.04, 0.06),
-                 crop_width: int = 320):
+                 crop_resolution: tuple[int, int] = (240, 320), flat_channels: int = 0):
         super().__init__()
         from cosy_lite.models.pretrained import lite_features
 
@@ -83,14 +88,24 @@ class SiamesePoseNet(nn.Module):
         self.corr_radius = int(corr_radius)
         n_corr = (2 * self.corr_radius + 1) ** 2 if self.corr_radius > 0 else 0
         self.fuse8 = _conv_bn_relu(2 * c8 + n_corr, width, stride=2)
-        self.fuse16 = nn.Sequential(_conv_bn_relu(width + 2 * c16, 2 * width), _conv_bn_relu(2 * width, 2 * width, 2),
+        h, w = (int(v) for v in crop_resolution)
+        self.flat_channels = int(flat_channels)
+        if self.flat_channels and (h % 16 or w % 16):
+            raise ValueError(f"flat_channels needs a crop resolution divisible by 16, got {h}x{w}")
+        self.fuse16 = nn.Sequential(_conv_bn_relu(width + 2 * c16, 2 * width),
+                                    _conv_bn_relu(2 * width, 2 * width, 1 if self.flat_channels else 2),
                                     _conv_bn_relu(2 * width, 2 * width))
-        self.head = nn.Linear(3 * 2 * width, N_OUT)  # average pooling + (x, y) per channel
+        n_features = 3 * 2 * width  # average pooling + (x, y) per channel
+        self.flat = None
+        if self.flat_channels:
+            self.flat = nn.Sequential(nn.Conv2d(2 * width, self.flat_channels, 1), nn.ReLU(inplace=True))
+            n_features += self.flat_channels * (h // 16) * (w // 16)
+        self.head = nn.Linear(n_features, N_OUT)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("output_scale", output_scale_vector(output_scale, crop_width), persistent=False)
+        self.register_buffer("output_scale", output_scale_vector(output_scale, w), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """``images [B, 6, H, W]`` float in ``[0, 1]`` (crop, rendering) -> ``delta [B, 9]``."""
@@ -104,5 +119,7 @@ class SiamesePoseNet(nn.Module):
             parts.append(local_correlation(f8[B:], f8[:B], self.corr_radius) * CORRELATION_GAIN)
         y = self.fuse8(torch.cat(parts, dim=1))
         y = self.fuse16(torch.cat([y, f16[:B], f16[B:]], dim=1))
-        pooled = torch.cat([y.mean(dim=(2, 3)), spatial_soft_argmax(y)], dim=1)
-        return self.head(pooled) * self.output_scale
+        features = [y.mean(dim=(2, 3)), spatial_soft_argmax(y)]
+        if self.flat is not None:
+            features.append(self.flat(y).flatten(1))
+        return self.head(torch.cat(features, dim=1)) * self.output_scale

@@ -48,6 +48,7 @@ class PoseNetConfig:
     pretrained: bool = True  # siamese: ImageNet weights for the trunk
     corr_radius: int = 3  # siamese: cost-volume displacements in stride-8 cells
     width: int = 128  # siamese: fusion channels
+    flat_channels: int = 0  # siamese: channels of the flattened stride-16 map in the head (0: none)
     # how the object is rendered for the network: "headlight" (shaded: 3D shape cues) or "flat"
     # (colours only); inference renders as the checkpoint says
     render_shading: str = "headlight"
@@ -70,8 +71,13 @@ class PoseDataConfig:
 
 @dataclass
 class PoseNoiseConfig:
+    """Refiner input noise: GT + N(0, rot_std_deg) per axis and N(0, trans_std) per camera axis.
+    ``scale_mix``: in training each item's stds are scaled by u ~ U(0, 1) (small errors too, as
+    the later refiner iterations see them); validation always uses the full stds."""
+
     rot_std_deg: float = 15.0
     trans_std: list[float] = field(default_factory=lambda: [0.01, 0.01, 0.05])  # m
+    scale_mix: bool = False
 
 
 @dataclass
@@ -107,7 +113,7 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
 
         return SiamesePoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
                               corr_radius=cfg.corr_radius, width=cfg.width, output_scale=scale,
-                              crop_width=int(cfg.crop_resolution[1]))
+                              crop_resolution=tuple(cfg.crop_resolution), flat_channels=cfg.flat_channels)
     return PoseNet(backbone=cfg.backbone, in_channels=6, norm=cfg.norm, output_scale=scale,
                    crop_width=int(cfg.crop_resolution[1]))
 
@@ -122,9 +128,14 @@ def initialised_from(cfg: PoseNetConfig) -> str:
 
 
 def initial_poses(model: str, TCO_gt: Tensor, boxes: Tensor, K: Tensor, diameters: Tensor, noise: PoseNoiseConfig,
-                  generator: torch.Generator | None = None) -> Tensor:
+                  generator: torch.Generator | None = None, training: bool = False) -> Tensor:
     """Input poses of a training/validation batch: refiner GT + noise, coarse from the GT box."""
     if model == "refiner":
+        if training and noise.scale_mix:
+            u = torch.rand(len(TCO_gt), generator=generator, dtype=torch.float64)
+            return torch.cat([add_pose_noise(TCO_gt[i:i + 1].double(), noise.rot_std_deg * float(u[i]),
+                                             tuple(float(u[i]) * s for s in noise.trans_std), generator=generator)
+                              for i in range(len(TCO_gt))]).to(TCO_gt)
         return add_pose_noise(TCO_gt, noise.rot_std_deg, tuple(noise.trans_std), generator=generator).to(TCO_gt)
     return initial_pose_from_boxes(boxes, K, diameters).to(TCO_gt)
 
@@ -238,7 +249,8 @@ class PoseTask:
 
         t0 = time.perf_counter()
         aug_before = self.stage_seconds["augmentation"]
-        TCO_in = initial_poses(self.cfg.model, batch.TCO, batch.bboxes, batch.K, objects.diameters[rows], self.cfg.noise)
+        TCO_in = initial_poses(self.cfg.model, batch.TCO, batch.bboxes, batch.K, objects.diameters[rows], self.cfg.noise,
+                               training=True)
         inp = make_inputs(images, batch.K, TCO_in, batch.obj_ids.tolist(), points, self.renderer, res,
                           crop_transform=augment)
         t1 = time.perf_counter()
