@@ -54,6 +54,19 @@ def test_bom_is_accepted_with_a_warning_and_scored(root: Path, capsys, newline: 
     assert json.loads((root.parent / "ev" / "scores.json").read_text())["ar"] == 1.0
 
 
+def test_header_with_trailing_whitespace_is_read_as_the_toolkit_does(root: Path, capsys):
+    text = _gt_text(root)
+    csv = root.parent / "ws_tiny-test.csv"
+    csv.write_text(text.replace(HEADER, HEADER + " \t", 1))  # the toolkit: line 1 is the header if it contains it
+    assert [e.obj_id for e in read_results_csv(csv)] == [1, 2, 1, 1, 2]
+    rc, out = _cli(capsys, "check-results", str(csv), "--dataset", str(root))
+    assert rc == 0, out
+    inner = root.parent / "sp_tiny-test.csv"
+    inner.write_text(text.replace(HEADER, HEADER.replace(",", ", "), 1))  # not contained: the toolkit fails too
+    rc, out = _cli(capsys, "check-results", str(inner), "--dataset", str(root))
+    assert rc == 1 and "line 1: header" in out
+
+
 # (file bytes, field of the first error, words)
 BROKEN = {
     "bom-then-bad-header": (codecs.BOM_UTF8 + b"scene,im,obj\n" + ROW.encode(), "line 1: header", "expected exactly"),

@@ -214,7 +214,7 @@ def _parse_row(path: Path, n: int, cells: list[str], order: tuple[str, ...]) -> 
 def _header_order(path: Path, line: str) -> tuple[tuple[str, ...] | None, list[BopFormatError]]:
     """Column order to parse the data rows with (None: line 1 is data) and the header problems."""
     cells = tuple(s.strip() for s in line.split(","))
-    if line == HEADER:
+    if line.strip() == HEADER:  # the toolkit takes line 1 as the header when it contains HEADER
         return COLUMNS, []
     if cells == COLUMNS:
         return COLUMNS, [BopFormatError(path, "line 1: header", f"got {line!r}, expected exactly {HEADER!r} (no spaces)")]

