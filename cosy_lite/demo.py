@@ -44,9 +44,9 @@ class DemoConfig:
     data_root: Path = REPO / "data"
     runs: Path = REPO / "runs" / "demo"
     out: Path = REPO / "outputs"
-    # detector: its profile's 1200 steps take ~13 min on the quiet 2-core machine (the budget is a cap);
-    # coarse and refiner train side by side, one core each
-    train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 14.0, "coarse": 11.0, "refiner": 11.0})
+    # detector: its profile's 1200 steps take ~17.5 min on the 2-core machine (1.15 steps/s with 2 DDP
+    # processes; the budget is a cap); coarse and refiner train side by side, one core each
+    train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 18.0, "coarse": 11.0, "refiner": 11.0})
     n_refiner_iters: int = 4
     vis: int = 4
     threads: int = 2
@@ -201,7 +201,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=DemoConfig.runs, help="run folders of the three models")
     p.add_argument("--out", type=Path, default=DemoConfig.out, help="CSVs, scores, overlays, summary")
     p.add_argument("--minutes", type=float, nargs=3, metavar=("DET", "COARSE", "REF"), default=None,
-                   help="training budget per model (default 14 11 11)")
+                   help="training budget per model (default 18 11 11)")
 
 
 def run(args: argparse.Namespace) -> int:
