@@ -43,7 +43,7 @@ class ImageCache:
         H, W = first.shape[:2]
         rgb = np.zeros((len(table.im_ids), H, W, 3), dtype=np.uint8)
         labels = np.zeros((len(table.im_ids), H, W), dtype=np.uint8)
-        for r in tqdm(rows, desc=f"decode {table.split} images", unit="img", disable=not progress, leave=False):
+        for r in tqdm(rows, desc=f"decode {table.split} images", unit="img", disable=None if progress else True, leave=False):
             scene_id, im_id, n = int(table.scene_ids[r]), int(table.im_ids[r]), int(table.n_gt[r])
             if n > MAX_INSTANCES:
                 raise BopFormatError(dataset.scene_dir(table.split, scene_id) / "scene_gt.json", str(im_id),

@@ -299,7 +299,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
                 f.write(json.dumps(record) + "\n")
 
     bar = tqdm(total=loop.steps, initial=start_step, desc=f"train {task.kind}", unit="step",
-               disable=not (progress and dist_info.is_main), dynamic_ncols=True)
+               disable=None if (progress and dist_info.is_main) else True, dynamic_ncols=True)  # None: only on a terminal
     t_start = time.perf_counter()
     t_interval, items_interval = time.perf_counter(), 0
     sums: dict[str, float] = dict(interval["sums"])
