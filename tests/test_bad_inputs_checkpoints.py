@@ -99,7 +99,7 @@ def test_train_py_resume_with_a_payload_is_one_message(tiny_synth_root, tmp_path
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run([sys.executable, str(ROOT / "train.py"), "--dataset", str(tiny_synth_root), "--model", "refiner",
                         "--out", str(out), "--resume", "loop.steps=1", "loop.num_workers=0", "loop.device=cpu",
-                        "data.val_images=1", "data.n_points=300", "net.backbone=resnet18",
+                        "data.val_images=1", "data.n_points=300", "net.arch=early", "net.backbone=resnet18",
                         "net.crop_resolution=[60,80]"],
                        capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
     assert r.returncode == 2, r.stdout[-2000:] + r.stderr[-3000:]

@@ -95,3 +95,14 @@ def test_scale_mix_noise_is_smaller_in_training_only():
     a_full = rotation_angle_deg(full[:, :3, :3], T[:, :3, :3]).median()
     a_mix = rotation_angle_deg(mixed[:, :3, :3], T[:, :3, :3]).median()
     assert 18 < a_full < 30 and a_mix < 0.7 * a_full  # E[u] = 1/2 of the stds
+
+
+def test_backbone_of_the_other_arch_is_a_config_error():
+    from cosy_lite.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"\[net.backbone\].*pretrained trunk"):
+        build_pose_net(PoseNetConfig(arch="siamese", backbone="resnet18"))
+    with pytest.raises(ConfigError, match=r"\[net.backbone\].*net.arch=early needs"):
+        build_pose_net(PoseNetConfig(arch="early", backbone="efficientnet_lite0"))
+    with pytest.raises(ConfigError, match=r"\[net.arch\]"):
+        build_pose_net(PoseNetConfig(arch="late"))

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
+from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.crops import crop_images
 from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
@@ -98,6 +99,24 @@ class PoseTrainConfig:
 POSE_ARCHS = ("early", "siamese")
 
 
+def check_net_config(cfg: PoseNetConfig) -> None:
+    """ConfigError naming the field when ``net.arch`` / ``net.backbone`` / ``net.render_shading`` do not fit."""
+    from cosy_lite.models.backbones import BACKBONES
+    from cosy_lite.models.pretrained import WEIGHTS
+    from cosy_lite.render.renderer import SHADINGS
+
+    if cfg.arch not in POSE_ARCHS:
+        raise ConfigError("network config", "net.arch", f"expected one of {list(POSE_ARCHS)}, got {cfg.arch!r}")
+    if cfg.arch == "siamese" and cfg.backbone not in WEIGHTS:
+        raise ConfigError("network config", "net.backbone", f"net.arch=siamese needs a pretrained trunk, one of "
+                          f"{sorted(WEIGHTS)}; got {cfg.backbone!r} (torchvision backbones: net.arch=early)")
+    if cfg.arch == "early" and cfg.backbone not in BACKBONES:
+        raise ConfigError("network config", "net.backbone", f"net.arch=early needs one of {sorted(BACKBONES)}, "
+                          f"got {cfg.backbone!r} (pretrained trunks: net.arch=siamese)")
+    if cfg.render_shading not in SHADINGS:
+        raise ConfigError("network config", "net.render_shading", f"expected one of {list(SHADINGS)}, got {cfg.render_shading!r}")
+
+
 def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner",
                    load_weights: bool = True) -> torch.nn.Module:
     """The ``kind`` ("coarse" | "refiner") network of ``net_cfg`` (the kind only picks the default
@@ -105,8 +124,7 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
     cfg = net_cfg if isinstance(net_cfg, PoseNetConfig) else PoseNetConfig(**net_cfg)
     if kind not in OUTPUT_SCALES:
         raise ValueError(f"model kind must be one of {sorted(OUTPUT_SCALES)}, got {kind!r}")
-    if cfg.arch not in POSE_ARCHS:
-        raise ValueError(f"net.arch must be one of {POSE_ARCHS}, got {cfg.arch!r}")
+    check_net_config(cfg)
     scale = tuple(OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale)
     if cfg.arch == "siamese":
         from cosy_lite.models.siamese_pose_net import SiamesePoseNet
@@ -185,6 +203,7 @@ class PoseTask:
     def __init__(self, cfg: PoseTrainConfig, dataset_root: str | Path):
         if cfg.model not in POSE_MODELS:
             raise ValueError(f"model must be one of {POSE_MODELS}, got {cfg.model!r}")
+        check_net_config(cfg.net)  # before the (slow) data set-up
         self.cfg = cfg
         self.kind = cfg.model
         self.dataset = BopDataset(Path(dataset_root), cfg.dataset)
