@@ -1,4 +1,9 @@
-"""Scratch refiner/coarse learning-curve experiment (RAM data, project crops/renderer/loss)."""
+"""The refiner/coarse learning-curve harness of 2026-12-01, kept as it ran (paths of the development
+machine: data/ycbv-synth under /work/main, an image cache in /work/cache). It uses the package's
+crops, renderer, loss and validation errors; images held in memory (ramdata.py); network variants in
+nets.py (the one kept is cosy_lite.models.siamese_pose_net.SiamesePoseNet). The args.json of each
+run folder is its command line: python train_exp.py --out RUN [--shading headlight] [--noise-mix] ...
+The package's own training path for the recipe is `python train.py --model refiner` (demo profile)."""
 from __future__ import annotations
 
 import argparse
