@@ -105,7 +105,8 @@ def _run_parallel(cmds: list[list[str]], whats: list[str], logs: list[Path]) -> 
     for cmd, what, log in zip(cmds, whats, logs):
         print(f"\n=== {what} (log: {log})\n$ {' '.join(cmd)}", flush=True)
         log.parent.mkdir(parents=True, exist_ok=True)
-        procs.append((subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT), what, log))
+        with log.open("w") as out:  # the child keeps its own copy of the descriptor
+            procs.append((subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT), what, log))
     t = time.perf_counter()
     failed = []
     for proc, what, log in procs:

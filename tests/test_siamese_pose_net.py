@@ -106,3 +106,23 @@ def test_backbone_of_the_other_arch_is_a_config_error():
         build_pose_net(PoseNetConfig(arch="early", backbone="efficientnet_lite0"))
     with pytest.raises(ConfigError, match=r"\[net.arch\]"):
         build_pose_net(PoseNetConfig(arch="late"))
+
+
+@pytest.mark.parametrize("stored, expected", [(None, "flat"), ("headlight", "headlight")])
+def test_inference_renders_as_the_checkpoint_was_trained(tmp_path, stored, expected):
+    """Checkpoints from before ``net.render_shading`` existed were trained on flat renderings."""
+    from dataclasses import asdict
+
+    from cosy_lite.inference.loaders import load_pose_model
+    from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
+
+    cfg = PoseNetConfig(arch="early", backbone="resnet18", crop_resolution=[48, 64])
+    net_meta = asdict(cfg)
+    if stored is None:
+        del net_meta["render_shading"]
+    else:
+        net_meta["render_shading"] = stored
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, Checkpoint(kind="refiner", model=build_pose_net(cfg).state_dict(), config={}, step=1,
+                                     meta={"net": net_meta, "obj_ids": [1, 2]}))
+    assert load_pose_model(path, "refiner").render_shading == expected

@@ -75,7 +75,8 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
     h, w = (int(v) for v in cfg.crop_resolution)
     if not obj_ids:
         raise CheckpointError(path, "field 'meta.obj_ids' is empty")
-    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, cfg.render_shading)
+    shading = str(net_cfg.get("render_shading", "flat"))  # files from before shading existed: flat renderings
+    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, shading)
 
 
 def load_detector(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:

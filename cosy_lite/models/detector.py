@@ -140,7 +140,7 @@ def _norm(cfg: DetectorConfig) -> Callable[[int], nn.Module]:
     return norm_layer(cfg.norm) or nn.BatchNorm2d
 
 
-def _resnet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig) -> BackboneWithFPN:
+def _resnet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig, load_weights: bool = True) -> BackboneWithFPN:
     """ResNet C2..C5 + FPN (+ max-pool level): 5 levels, strides 4..64."""
     net = ctor(weights=None, norm_layer=_norm(cfg))
     layers = ("layer1", "layer2", "layer3", "layer4")
@@ -150,7 +150,7 @@ def _resnet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig) -> Backbone
                            cfg.fpn_channels, extra_blocks=LastLevelMaxPool())
 
 
-def _mobilenet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig) -> BackboneWithFPN:
+def _mobilenet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig, load_weights: bool = True) -> BackboneWithFPN:
     """MobileNetV3 stages at strides 8, 16, 32 + FPN (+ max-pool level): 4 levels."""
     features = ctor(weights=None, norm_layer=_norm(cfg)).features
     # Last block of each resolution (torchvision marks the blocks that end a stage with _is_cn).
@@ -200,7 +200,7 @@ def _lite_fpn(trunk: str, cfg: DetectorConfig, load_weights: bool = True) -> Lit
 class DetectorSpec:
     """A backbone builder and the torchvision classifier it wraps."""
 
-    backbone: Callable[[Any, DetectorConfig], nn.Module]
+    backbone: Callable[[Any, DetectorConfig, bool], nn.Module]  # (ctor, config, load_weights)
     ctor: Any  # torchvision classifier constructor, or the timm trunk name
     n_levels: int  # FPN outputs incl. the max-pool level (one anchor size per level)
 
@@ -224,7 +224,7 @@ def build_maskrcnn(cfg: DetectorConfig, n_classes: int, load_weights: bool = Tru
     if len(sizes) != spec.n_levels:
         raise ValueError(f"{cfg.name} needs {spec.n_levels} anchor_sizes (one per FPN level), got {cfg.anchor_sizes}")
     anchors = AnchorGenerator(tuple((s,) for s in sizes), ((0.5, 1.0, 2.0),) * spec.n_levels)
-    backbone = spec.backbone(spec.ctor, cfg, load_weights) if spec.backbone is _lite_fpn else spec.backbone(spec.ctor, cfg)
+    backbone = spec.backbone(spec.ctor, cfg, load_weights)  # load_weights: only pretrained trunks read a file
     c, m = backbone.out_channels, cfg.mask_head_channels
     box_head = TwoMLPHead(c * BOX_POOL**2, cfg.box_head_size)
     return MaskRCNN(backbone, num_classes=None, rpn_anchor_generator=anchors,  # classes set by the predictors

@@ -121,12 +121,14 @@ def add_pose_noise(
     trans_std: float | Sequence[float] = TRANS_STD,
     generator: torch.Generator | None = None,
     frame: str = "camera",
+    scale: Tensor | None = None,
 ) -> Tensor:
     """``TCO_gt [B,4,4]`` (m) perturbed for refiner training.
 
     Rotation: Euler angles ~ N(0, ``rot_std_deg``) degrees about x, y, z (``Rz Ry Rx``, as
     transforms3d's ``euler2mat`` in CosyPose), applied in ``frame`` (a key of :data:`NOISE_FRAMES`;
     the object origin stays put). Translation: ``+ N(0, trans_std)`` metres per camera axis.
+    ``scale [B]`` (optional) multiplies each item's noise (its angles and its translation).
     Random numbers come from ``generator`` (CPU) in float64, so a seed gives the same noise on any device.
     """
     if TCO_gt.dim() != 3 or TCO_gt.shape[1:] != (4, 4):
@@ -137,6 +139,10 @@ def add_pose_noise(
     rot_std = torch.tensor(_per_axis(rot_std_deg, "rot_std_deg"), dtype=torch.float64) * (math.pi / 180.0)
     t_std = torch.tensor(_per_axis(trans_std, "trans_std"), dtype=torch.float64)
     eps = torch.randn(B, 6, generator=generator, dtype=torch.float64)
+    if scale is not None:
+        if scale.shape != (B,):
+            raise ValueError(f"scale must be [{B}], got {tuple(scale.shape)}")
+        eps = eps * scale.to(torch.float64).cpu()[:, None]
     noise_R = euler_xyz_to_matrix(eps[:, :3] * rot_std).to(TCO_gt)
     noise_t = (eps[:, 3:] * t_std).to(TCO_gt)
     R = NOISE_FRAMES[frame](TCO_gt[:, :3, :3], noise_R)

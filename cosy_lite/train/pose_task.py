@@ -149,12 +149,9 @@ def initial_poses(model: str, TCO_gt: Tensor, boxes: Tensor, K: Tensor, diameter
                   generator: torch.Generator | None = None, training: bool = False) -> Tensor:
     """Input poses of a training/validation batch: refiner GT + noise, coarse from the GT box."""
     if model == "refiner":
-        if training and noise.scale_mix:
-            u = torch.rand(len(TCO_gt), generator=generator, dtype=torch.float64)
-            return torch.cat([add_pose_noise(TCO_gt[i:i + 1].double(), noise.rot_std_deg * float(u[i]),
-                                             tuple(float(u[i]) * s for s in noise.trans_std), generator=generator)
-                              for i in range(len(TCO_gt))]).to(TCO_gt)
-        return add_pose_noise(TCO_gt, noise.rot_std_deg, tuple(noise.trans_std), generator=generator).to(TCO_gt)
+        u = torch.rand(len(TCO_gt), generator=generator, dtype=torch.float64) if training and noise.scale_mix else None
+        return add_pose_noise(TCO_gt, noise.rot_std_deg, tuple(noise.trans_std), generator=generator,
+                              scale=u).to(TCO_gt)
     return initial_pose_from_boxes(boxes, K, diameters).to(TCO_gt)
 
 
