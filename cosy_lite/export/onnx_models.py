@@ -31,6 +31,7 @@ from cosy_lite.export.manifest import (
 PROVIDERS = ("CPUExecutionProvider",)
 MASK_THRESHOLD = 0.5  # mask probability -> bool (as cosy_lite.models.detector)
 POSE_OUTPUTS = 9
+FLOW_CHANNELS, FLOW_STRIDE = 3, 8  # a flow refiner's output [B,3,h/8,w/8] (models.flow_pose_net; no torch here)
 
 
 def session_options(threads: int | None = None, spinning: bool = False) -> Any:
@@ -129,13 +130,15 @@ class OnnxPoseNet:
             raise OnnxModelError(self.path, f"input {inputs[0].name} shape", f"{shape}, expected "
                                  f"[batch, {POSE_INPUT_CHANNELS}, {h}, {w}] (6 channels: crop + rendering; "
                                  f"metadata crop_resolution {h}x{w})")
-        if list(outputs[0].shape)[1:] != [POSE_OUTPUTS]:
-            raise OnnxModelError(self.path, f"output {outputs[0].name} shape",
-                                 f"{list(outputs[0].shape)}, expected [batch, {POSE_OUTPUTS}]")
+        self.output = "flow" if self.config.get("arch") == "flow" else "delta"
+        expected = [FLOW_CHANNELS, h // FLOW_STRIDE, w // FLOW_STRIDE] if self.output == "flow" else [POSE_OUTPUTS]
+        if list(outputs[0].shape)[1:] != expected:
+            raise OnnxModelError(self.path, f"output {outputs[0].name} shape", f"{list(outputs[0].shape)}, expected "
+                                 f"[batch, {', '.join(map(str, expected))}] (metadata config arch: {self.output})")
         self.input_name = inputs[0].name
 
     def run(self, images: np.ndarray) -> np.ndarray:
-        """``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` float32."""
+        """``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` (or a flow refiner's ``[B,3,h/8,w/8]``) float32."""
         x = np.ascontiguousarray(images, dtype=np.float32)
         if x.ndim != 4 or x.shape[1:] != (POSE_INPUT_CHANNELS, *self.crop_resolution):
             raise ValueError(f"{self.path.name}: images must be [B,{POSE_INPUT_CHANNELS},{self.crop_resolution[0]},"

@@ -5,7 +5,8 @@ current poses (:func:`cosy_lite.geometry.crops_np.crop_boxes`), the image crops 
 sampling in numpy, :func:`~cosy_lite.geometry.crops_np.crop_image`) and ``K_crop``, the objects
 rendered with ``K_crop`` (:meth:`Renderer.render`, numpy out), the ``[B,6,h,w]`` float32 input
 (crop, rendering) -> a numpy network (:meth:`cosy_lite.export.onnx_models.OnnxPoseNet.run`) ->
-:func:`cosy_lite.models.pose_update_np.apply_pose_update`. Poses are float64 throughout. Pose
+:func:`cosy_lite.models.pose_update_np.apply_pose_update` (9-number networks) or
+:func:`cosy_lite.models.flow_pose_solver.pose_from_flow` (flow networks, with the rendering's depth). Poses are float64 throughout. Pose
 checks (:func:`valid_poses`, :func:`orthonormalise`) are here too. Imports numpy only (the
 renderer is passed in), so the loop runs where torch is not installed.
 """
@@ -18,6 +19,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cosy_lite.geometry.crops_np import crop_boxes, crop_image, crop_intrinsics
+from cosy_lite.models.flow_pose_solver import pose_from_flow
 from cosy_lite.models.pose_update_np import apply_pose_update
 
 Size = tuple[int, int]
@@ -28,11 +30,12 @@ MIN_DEPTH = 0.02  # m: an estimate nearer than this (or behind the camera) is in
 @dataclass
 class NetInputs:
     """images [B,6,h,w] float32 in [0, 1] (image crop, rendering); K_crop [B,3,3] float64; boxes [B,4]
-    float64 xyxy px."""
+    float64 xyxy px; depth [B,h,w] (m, 0 off the object) of the rendering."""
 
     images: np.ndarray
     K_crop: np.ndarray
     boxes: np.ndarray
+    depth: np.ndarray
 
 
 def image_array(rgb: np.ndarray) -> np.ndarray:
@@ -52,18 +55,29 @@ def make_inputs(image: np.ndarray, K: np.ndarray, TCO: np.ndarray, obj_ids: Sequ
     K_crop = crop_intrinsics(K, boxes, (h, w))
     images = np.empty((len(TCO), 6, h, w), dtype=np.float32)
     crop_image(image, boxes, (h, w), out=images[:, :3])
-    rendered = renderer.render([int(i) for i in obj_ids], TCO, K_crop, (h, w)).rgb  # [B,h,w,3] uint8
-    images[:, 3:] = rendered.transpose(0, 3, 1, 2)
+    rendered = renderer.render([int(i) for i in obj_ids], TCO, K_crop, (h, w))
+    images[:, 3:] = rendered.rgb.transpose(0, 3, 1, 2)  # [B,h,w,3] uint8
     images[:, 3:] /= np.float32(255.0)
-    return NetInputs(images, K_crop, boxes)
+    return NetInputs(images, K_crop, boxes, rendered.depth)
+
+
+FLOW_STRIDE = 8  # cosy_lite.models.flow_pose_net.FlowPoseNet.stride (not imported: no torch here)
+
+
+def updated_poses(TCO: np.ndarray, inp: NetInputs, out: np.ndarray, output: str = "delta") -> np.ndarray:
+    """The poses after the network answered ``out`` (``[B,9]`` updates or a ``[B,3,h,w]`` flow field)."""
+    if output == "flow":
+        return pose_from_flow(TCO, inp.K_crop, inp.depth, out, FLOW_STRIDE)
+    return apply_pose_update(TCO, inp.K_crop, out)
 
 
 def iterate_poses(net: NumpyNet, image: np.ndarray, K: np.ndarray, TCO_init: np.ndarray, obj_ids: Sequence[int],
                   points: np.ndarray, renderer: Any, n_iterations: int, crop_resolution: Size,
-                  batch_size: int = 32) -> list[np.ndarray]:
+                  batch_size: int = 32, output: str = "delta") -> list[np.ndarray]:
     """``n_iterations`` render-and-compare updates from ``TCO_init [B,4,4]`` (m) in one ``image``;
     the poses after each iteration (float64 ``[B,4,4]`` each). Arguments as :func:`make_inputs`;
-    ``net`` maps ``[b,6,h,w]`` float32 to ``[b,9]``; ``batch_size`` items per network call."""
+    ``net`` maps ``[b,6,h,w]`` float32 to ``[b,9]`` (``output="delta"``) or to a flow field
+    (``"flow"``); ``batch_size`` items per network call."""
     poses, TCO = [], np.asarray(TCO_init, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
@@ -72,7 +86,7 @@ def iterate_poses(net: NumpyNet, image: np.ndarray, K: np.ndarray, TCO_init: np.
         for s in range(0, len(TCO), batch_size):
             sl = slice(s, s + batch_size)
             inp = make_inputs(image, K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
-            out.append(apply_pose_update(TCO[sl], inp.K_crop, net(inp.images)))
+            out.append(updated_poses(TCO[sl], inp, net(inp.images), output))
         TCO = np.concatenate(out) if out else TCO
         poses.append(TCO)
     return poses

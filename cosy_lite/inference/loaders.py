@@ -44,6 +44,7 @@ class PoseModel:
     obj_ids: list[int]
     path: Path | None = None
     render_shading: str = "flat"  # how its renderings were made in training (PoseNetConfig.render_shading)
+    output: str = "delta"  # what the net returns: 9-number updates, or a "flow" field (render_and_compare)
 
     def describe(self) -> str:
         return str(self.path) if self.path is not None else f"{self.kind} model (built in code)"
@@ -59,6 +60,7 @@ def _meta_field(ckpt: Checkpoint, path: Path, name: str) -> Any:
 
 def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "cpu") -> PoseModel:
     """The ``kind`` ("coarse" | "refiner") network of the checkpoint at ``path``, in eval mode on ``device``."""
+    from cosy_lite.models.render_and_compare import network_output
     from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
 
     path = Path(path)
@@ -76,7 +78,8 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
     if not obj_ids:
         raise CheckpointError(path, "field 'meta.obj_ids' is empty")
     shading = str(net_cfg.get("render_shading", "flat"))  # files from before shading existed: flat renderings
-    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, shading)
+    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, shading,
+                     network_output(net))
 
 
 def load_detector(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
@@ -135,7 +138,8 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
             raise OnnxModelError(manifest.path, f"models.{name}.kind", f"{entry.kind!r}, expected {role!r}")
         net = OnnxPoseNet(manifest.file(name), threads, role, entry, name, spinning)
         pose[role] = PoseModel(net, role, net.crop_resolution, net.obj_ids, net.path,
-                               str(net.config.get("render_shading", "flat")))
+                               str(net.config.get("render_shading", "flat")),
+                               "flow" if net.config.get("arch") == "flow" else "delta")
     if pose["coarse"] is None:
         raise OnnxModelError(manifest.path, "models.coarse", "missing: the export has no coarse model "
                              f"(it has {sorted(manifest.models)})")

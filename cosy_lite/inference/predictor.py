@@ -584,11 +584,11 @@ class Predictor:
                     break
                 if len(live) == N:
                     TCO = iterate_poses(net, images, K_b, TCO, ids, points, renderer, 1, model.crop_resolution,
-                                        self.batch_size)[-1]
+                                        self.batch_size, model.output)[-1]
                     continue
                 sel = torch.tensor(live, device=TCO.device)
                 new = iterate_poses(net, images[sel], K_b[sel], TCO[sel], [ids[i] for i in live],
-                                    points[sel], renderer, 1, model.crop_resolution, self.batch_size)[-1]
+                                    points[sel], renderer, 1, model.crop_resolution, self.batch_size, model.output)[-1]
                 TCO = TCO.clone()
                 TCO[sel] = new
             if role == "coarse":
@@ -624,7 +624,8 @@ class Predictor:
                 if len(live) == 0:
                     break
                 new = iterate_np.iterate_poses(net, image, K_b[live], TCO[live], [ids[i] for i in live],
-                                               points[live], renderer, 1, model.crop_resolution, self.batch_size)[-1]
+                                               points[live], renderer, 1, model.crop_resolution, self.batch_size,
+                                               model.output)[-1]
                 TCO = TCO.copy()
                 TCO[live] = new
             if role == "coarse":

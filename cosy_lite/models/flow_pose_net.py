@@ -1,0 +1,116 @@
+"""The flow refiner network: where is each rendered surface point in the image crop?
+
+Input as every pose network here: the image crop and the rendering stacked on channels,
+``[B, 6, H, W]`` in ``[0, 1]``. Output: a dense displacement field on the stride-8 grid,
+``[B, 3, H/8, W/8]`` = (dx, dy) in crop pixels from each rendering cell to the matching image
+position, and a confidence in ``[0, 1]``. The pose update is then geometry, not learning: the
+rendering's depth makes every cell a 2D-3D correspondence and
+:func:`cosy_lite.models.flow_pose_solver.pose_from_flow` fits the pose to them.
+
+Why (bench/RESULTS.md, 2026-12-01): a network regressing the 9 update numbers from the pair learns
+from one number-vector per crop and did not halve the refiner errors in 62,000 crops; the flow
+target gives a supervised displacement for every visible rendered cell (hundreds per crop), which
+the GT pose provides for free (:mod:`cosy_lite.models.flow_targets`).
+
+Layers: one ImageNet-pretrained EfficientNet-Lite trunk (:mod:`cosy_lite.models.pretrained`) on the
+crop and the rendering separately (stride 8 and 16 maps; the stride-16 one upsampled for context) ->
+a small trainable descriptor head -> unit descriptors -> the local correlation (cost volume) of each
+rendering cell with the image cells within ``+-radius`` cells, divided by a learnt temperature ->
+softmax -> expected displacement (soft-argmax) and the peak probability as confidence.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD
+
+TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16
+FLOW_CHANNELS = 3  # dx, dy (crop px), confidence
+
+
+def local_cost_volume(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
+    """``[B, (2r+1)^2, H, W]``: ``<a(p), b(p + d)>`` summed over channels for ``d = (dx, dy)``,
+    ``|dx|, |dy| <= radius``, row-major in ``(dy, dx)``; ``b`` is 0 outside the map."""
+    _, _, H, W = a.shape
+    padded = F.pad(b, (radius, radius, radius, radius))
+    n = 2 * radius + 1
+    return torch.stack([(a * padded[:, :, dy:dy + H, dx:dx + W]).sum(1) for dy in range(n) for dx in range(n)], dim=1)
+
+
+def flow_from_cost(logits: torch.Tensor, radius: int, stride: int) -> torch.Tensor:
+    """``[B, 3, H, W]`` (dx, dy in pixels, confidence) from cost-volume logits ``[B, (2r+1)^2, H, W]``."""
+    B, _, H, W = logits.shape
+    n = 2 * radius + 1
+    p = logits.softmax(dim=1).view(B, n, n, H, W)
+    d = torch.arange(n, dtype=p.dtype, device=p.device) - radius
+    dy = (p.sum(2) * d.view(1, n, 1, 1)).sum(1)
+    dx = (p.sum(1) * d.view(1, n, 1, 1)).sum(1)
+    confidence = p.flatten(1, 2).amax(dim=1)
+    return torch.stack([dx * stride, dy * stride, confidence], dim=1)
+
+
+def _conv_bn_relu(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, 1, 1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+
+
+class FlowPoseNet(nn.Module):
+    """Pretrained siamese trunk -> descriptors -> local cost volume -> flow and confidence.
+
+    Args:
+        trunk: a key of :data:`cosy_lite.models.pretrained.WEIGHTS` (``"efficientnet_lite0"``).
+        pretrained: ImageNet weights for the trunk (False: random, for tests and ablations).
+        load_weights: False builds the same network without reading the weights file (the
+            weights then come from a checkpoint).
+        radius: displacements of the cost volume, in stride-8 cells (8 px each).
+        descriptor: channels of the matching descriptors.
+        temperature: initial softmax temperature of the cosine similarities (learnt).
+    """
+
+    output = "flow"  # what forward returns: the render-and-compare loop solves the pose from it
+    stride = 8
+
+    def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
+                 radius: int = 4, descriptor: int = 64, temperature: float = 0.05):
+        super().__init__()
+        from cosy_lite.models.pretrained import lite_features
+
+        if radius < 1:
+            raise ValueError(f"radius must be >= 1 cell, got {radius}")
+        self.in_channels = 6
+        self.radius = int(radius)
+        self.trunk = lite_features(trunk, TRUNK_LEVELS, pretrained=pretrained and load_weights)
+        c8, c16 = self.trunk.feature_info.channels()
+        self.descriptor = nn.Sequential(_conv_bn_relu(c8 + c16, 2 * descriptor), _conv_bn_relu(2 * descriptor, descriptor),
+                                        nn.Conv2d(descriptor, descriptor, 1))
+        self.log_temperature = nn.Parameter(torch.tensor(math.log(temperature)))
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def descriptors(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unit descriptors of the image crops and of the renderings, each ``[B, C, H/8, W/8]``."""
+        if images.ndim != 4 or images.shape[1] != 6:
+            raise ValueError(f"FlowPoseNet expects images [B,6,H,W], got {tuple(images.shape)}")
+        if images.shape[2] % 16 or images.shape[3] % 16:
+            raise ValueError(f"FlowPoseNet needs crops divisible by 16, got {images.shape[2]}x{images.shape[3]}")
+        B = images.shape[0]
+        x = (torch.cat([images[:, :3], images[:, 3:]], dim=0) - self.mean) / self.std
+        f8, f16 = self.trunk(x)
+        f = torch.cat([f8, F.interpolate(f16, size=f8.shape[-2:], mode="bilinear", align_corners=False)], dim=1)
+        f = F.normalize(self.descriptor(f), dim=1)
+        return f[:B], f[B:]
+
+    def cost_volume(self, images: torch.Tensor) -> torch.Tensor:
+        """Logits ``[B, (2r+1)^2, H/8, W/8]``: rendering cell vs the image cells around it."""
+        image, rendering = self.descriptors(images)
+        return local_cost_volume(rendering, image, self.radius) / self.log_temperature.exp()
+
+    def forward(self, images: torch.Tensor, cost_volume: bool = False) -> torch.Tensor:
+        """``images [B, 6, H, W]`` (crop, rendering) -> ``[B, 3, H/8, W/8]`` (dx, dy px, confidence);
+        ``cost_volume=True``: the logits instead (training; through forward so that DDP sees the call)."""
+        logits = self.cost_volume(images)
+        return logits if cost_volume else flow_from_cost(logits, self.radius, self.stride)

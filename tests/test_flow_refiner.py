@@ -1,0 +1,196 @@
+"""Flow refiner: cost volume and soft-argmax, GT flow targets, the PnP pose solver, training, ONNX."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cosy_lite.errors import ConfigError
+from cosy_lite.geometry.rotations import rotation_angle_deg
+from cosy_lite.models.flow_pose_net import FlowPoseNet, flow_from_cost, local_cost_volume
+from cosy_lite.models.flow_pose_solver import MIN_CELLS, pose_from_flow
+from cosy_lite.models.flow_targets import FlowTargets, flow_loss, flow_targets
+from cosy_lite.models.initial_pose import add_pose_noise
+from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+
+H, W, S = 96, 128, 8
+
+
+def _K(B: int) -> torch.Tensor:
+    K = torch.tensor([[150.0, 0.0, 64.0], [0.0, 150.0, 48.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return K.repeat(B, 1, 1)
+
+
+def _sphere_depth(TCO: torch.Tensor, K: torch.Tensor, radius: float = 0.12) -> torch.Tensor:
+    """Depth [B,1,H,W] of a sphere of ``radius`` (m) centred at each pose's origin (its front surface)."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    rays = torch.einsum("bij,hwj->bhwi", torch.linalg.inv(K), torch.stack([u, v, torch.ones_like(u)], -1))
+    c = TCO[:, None, None, :3, 3]
+    a = (rays * rays).sum(-1)
+    b = -2 * (rays * c).sum(-1)
+    cc = (c * c).sum(-1) - radius ** 2
+    disc = b * b - 4 * a * cc
+    s = (-b - disc.clamp(min=0).sqrt()) / (2 * a)
+    return torch.where(disc > 0, s * rays[..., 2], torch.zeros_like(s))[:, None].float()
+
+
+def _poses(B: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    gt = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
+    gt[:, :3, 3] = torch.tensor([0.01, -0.02, 0.5])
+    noisy = add_pose_noise(gt, 8.0, (0.005, 0.005, 0.02), generator=g)
+    return gt, noisy
+
+
+def test_cost_volume_and_soft_argmax_find_the_displacement():
+    torch.manual_seed(0)
+    b = torch.nn.functional.normalize(torch.randn(1, 16, 12, 16), dim=1)
+    a = torch.roll(b, shifts=(1, -2), dims=(2, 3))  # b(p + d) = a(p) for d = (dy, dx) = (-1, +2)
+    logits = local_cost_volume(a, b, radius=3) / 0.02
+    assert logits.shape == (1, 49, 12, 16)
+    flow = flow_from_cost(logits, radius=3, stride=8)
+    inner = flow[0, :, 4:8, 4:12]
+    assert torch.allclose(inner[0], torch.full_like(inner[0], 16.0), atol=1e-3)  # dx = +2 cells = 16 px
+    assert torch.allclose(inner[1], torch.full_like(inner[1], -8.0), atol=1e-3)  # dy = -1 cell
+    assert (inner[2] > 0.999).all()  # one sharp peak: confident
+
+
+def test_targets_give_the_gt_pose_back_through_the_solver():
+    """GT flow of every rendered cell, fed to the PnP solver, returns the GT pose (to ~1e-6)."""
+    gt, noisy = _poses(3)
+    K = _K(3)
+    depth = _sphere_depth(noisy, K)
+    visible = torch.ones(3, H, W, dtype=torch.bool)
+    t = flow_targets(depth, K, noisy, gt, visible, S)
+    assert t.flow.shape == (3, H // S, W // S, 2) and t.valid.sum() > 3 * 20
+    flow = torch.cat([t.flow.permute(0, 3, 1, 2).double(), torch.ones(3, 1, H // S, W // S, dtype=torch.float64)], 1)
+    new = torch.from_numpy(pose_from_flow(noisy.numpy(), K.numpy(), depth.numpy(), flow.numpy(), S))
+    assert rotation_angle_deg(noisy[:, :3, :3], gt[:, :3, :3]).min() > 2  # there was something to correct
+    assert rotation_angle_deg(new[:, :3, :3], gt[:, :3, :3]).max() < 1e-3
+    assert (new[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1).max() < 1e-6
+
+
+def test_solver_keeps_the_pose_without_enough_cells_or_with_nan():
+    gt, noisy = _poses(2)
+    K = _K(2).numpy()
+    depth = _sphere_depth(noisy, _K(2)).numpy()
+    flow = np.zeros((2, 3, H // S, W // S))
+    flow[:, :2] = 3.0
+    flow[0, 2] = 0.0  # item 0: no confident cell
+    flow[0, 2, 5, 8] = 1.0
+    assert MIN_CELLS > 1
+    flow[1, 0] = np.nan  # item 1: a broken network output
+    new = pose_from_flow(noisy.numpy(), K, depth, flow, S)
+    np.testing.assert_array_equal(new[0], noisy.numpy()[0])
+    np.testing.assert_array_equal(new[1], noisy.numpy()[1])  # NaN cells weigh nothing: none left, kept
+    assert np.isfinite(new).all()
+
+
+def test_a_uniform_shift_moves_the_object_sideways_only():
+    """Every cell displaced by +4 px in x: the surface (depths z - r .. z) moves by 4 px / fx times its depth
+    in x; no rotation to speak of, the same depth."""
+    _, noisy = _poses(1)
+    K = _K(1)
+    depth = _sphere_depth(noisy, K)
+    flow = np.zeros((1, 3, H // S, W // S))
+    flow[:, 0], flow[:, 2] = 4.0, 1.0
+    new = pose_from_flow(noisy.numpy(), K.numpy(), depth.numpy(), flow, S)
+    z = noisy[0, 2, 3].item()
+    assert 4.0 / 150.0 * (z - 0.12) < new[0, 0, 3] - noisy[0, 0, 3].item() < 4.0 / 150.0 * z
+    assert abs(new[0, 2, 3] - z) < 2e-3
+    assert rotation_angle_deg(torch.from_numpy(new[:, :3, :3]), noisy[:, :3, :3]).item() < 1.5
+
+
+def test_loss_is_smallest_at_the_target_and_ignores_unsupervised_cells():
+    r, n = 2, 5
+    flow = torch.zeros(1, 2, 3, 2)
+    flow[0, 0, 0] = torch.tensor([8.0, -4.0])  # dx = +1 cell, dy = -0.5 cell
+    valid = torch.zeros(1, 2, 3, dtype=torch.bool)
+    valid[0, 0, 0] = True
+    targets = FlowTargets(flow, valid)
+    logits = torch.zeros(1, n * n, 2, 3, requires_grad=True)
+    loss = flow_loss(logits, targets, r, 8)
+    assert loss.item() == pytest.approx(np.log(25.0), rel=1e-6)  # uniform: log of the cells
+    loss.backward()
+    g = logits.grad[0, :, 0, 0].view(n, n)
+    # descent raises the two target cells (dy in {-1, 0} -> rows 1, 2; dx = +1 -> column 3) equally
+    assert g[1, 3] < 0 and g[2, 3] < 0 and g[1, 3].item() == pytest.approx(g[2, 3].item())
+    assert (logits.grad[0, :, 1:, :] == 0).all() and (logits.grad[0, :, 0, 1:] == 0).all()
+
+
+def test_network_shapes_training_step_and_onnx(tmp_path):
+    pytest.importorskip("onnxruntime")
+    import onnxruntime as ort
+
+    torch.manual_seed(0)
+    net = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
+    x = torch.rand(2, 6, H, W)
+    out = net(x)
+    assert out.shape == (2, 3, H // S, W // S) and ((out[:, 2] >= 0) & (out[:, 2] <= 1)).all()
+    assert net(x, cost_volume=True).shape == (2, 25, H // S, W // S)
+    with pytest.raises(ValueError, match="divisible by 16"):
+        net(torch.rand(1, 6, 90, 120))
+    path = tmp_path / "flow.onnx"
+    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["flow"], opset_version=17,
+                      dynamic_axes={"images": {0: "batch"}, "flow": {0: "batch"}}, dynamo=False)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for b in (1, 3):
+        xb = torch.rand(b, 6, H, W)
+        np.testing.assert_allclose(sess.run(None, {"images": xb.numpy()})[0], net(xb).detach().numpy(), atol=2e-3)  # px
+
+
+def test_config_checks_name_the_field(tiny_synth_root):
+    with pytest.raises(ConfigError, match=r"\[net.crop_resolution\]"):
+        build_pose_net(PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[90, 120]))
+    with pytest.raises(ConfigError, match=r"\[net.backbone\]"):
+        build_pose_net(PoseNetConfig(arch="flow", backbone="resnet18"))
+    from cosy_lite.config import load_config
+    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
+
+    cfg = load_config(PoseTrainConfig, None, ["model=coarse", "dataset=tiny", "net.arch=flow",
+                                              "net.backbone=efficientnet_lite0"])
+    with pytest.raises(ConfigError, match=r"\[net.arch\].*refiner"):
+        PoseTask(cfg, tiny_synth_root)
+
+
+def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
+    """Training on the flow loss lowers it, and the fitted network's flow moves the poses towards the GT."""
+    from cosy_lite.config import load_config
+    from cosy_lite.models.render_and_compare import iterate_poses
+    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, pose_errors
+
+    cfg = load_config(PoseTrainConfig, None, [
+        "model=refiner", "dataset=tiny", "net.arch=flow", "net.backbone=efficientnet_lite0",
+        "net.width=32", "net.corr_radius=3", "net.crop_resolution=[96,128]", "data.val_images=1",
+        "data.val_instances=4", "data.n_points=300", "augmentation.enabled=false", "loop.device=cpu"])
+    task = PoseTask(cfg, tiny_synth_root)
+    ds = task.train_dataset()
+    batch = task.collate([ds[i] for i in range(4)])
+    torch.manual_seed(0)
+    net = task.build_model()
+    opt = torch.optim.Adam(net.parameters(), lr=2e-3)
+    losses = []
+    for _ in range(25):
+        torch.manual_seed(0)  # the same input poses every step
+        out = task.compute_losses(net, batch, 0, torch.device("cpu"))
+        opt.zero_grad()
+        out["total"].backward()
+        opt.step()
+        losses.append(out["total"].item())
+    assert set(out) == {"total", "flow_epe_px", "supervised_cells"} and out["supervised_cells"] > 0.1
+    assert losses[-1] < 0.7 * losses[0], losses
+    torch.manual_seed(0)
+    rows = task.objects.index(batch.obj_ids)
+    from cosy_lite.train.pose_task import initial_poses
+
+    TCO_in = initial_poses("refiner", batch.TCO, batch.bboxes, batch.K, task.objects.diameters[rows], cfg.noise,
+                           training=True)
+    points = task.objects.points[rows]
+    with torch.no_grad():
+        poses = iterate_poses(net.eval(), batch.rgb.float() / 255, batch.K, TCO_in, batch.obj_ids.tolist(), points,
+                              task.renderer, 2, (96, 128))
+    e0 = pose_errors(TCO_in, batch.TCO, points, task.objects.symmetries[rows], task.objects.sym_mask[rows])
+    e1 = pose_errors(poses[-1], batch.TCO, points, task.objects.symmetries[rows], task.objects.sym_mask[rows])
+    assert e1.adds_m.mean() < 0.8 * e0.adds_m.mean(), (e0.adds_m, e1.adds_m)
