@@ -14,7 +14,7 @@ from typing import Iterator
 import numpy as np
 
 from cosy_lite.bop import io
-from cosy_lite.bop.params import DatasetParams, SplitParams, get_dataset_params
+from cosy_lite.bop.params import DatasetParams, SplitParams, dataset_name_of, get_dataset_params
 from cosy_lite.errors import BopFormatError
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -49,8 +49,7 @@ class BopDataset:
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
-        if not self.name:
-            self.name = self.root.name
+        self.name = dataset_name_of(self.root, self.name)
         if not self.root.is_dir():
             raise BopFormatError(self.root, "", "dataset folder not found")
 

@@ -18,8 +18,9 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import IMAGE_EXTS
-from cosy_lite.bop.params import DATASETS, DatasetParams, SplitParams
-from cosy_lite.bop.results import ResultRow, format_estimate, parse_results_csv, parse_results_filename
+from cosy_lite.bop.params import DATASETS, DatasetParams, SplitParams, dataset_name_of
+from cosy_lite.bop.results import (ResultRow, format_estimate, misread_dataset, parse_results_csv,
+                                   parse_results_filename)
 from cosy_lite.errors import BopFormatError
 
 Severity = Literal["error", "warning"]
@@ -395,7 +396,7 @@ def check_dataset(
     from tqdm import tqdm
 
     root = Path(root)
-    name = name or root.name
+    name = dataset_name_of(root, name)
     params = DATASETS.get(name)
     out = _Collector()
     if not root.is_dir():
@@ -497,14 +498,21 @@ def check_results(
     except BopFormatError as e:
         out.items.append(Problem.from_error(e))
         file_dataset = file_split = None
+    if file_dataset is not None and (why := misread_dataset(path)) is not None:
+        out.error(path, "file name", why)
+        file_dataset = file_split = None  # what the toolkit reads is not what the file is for
+    if name and ("-" in name or "_" in name):
+        out.error(path, "file name", f"dataset name {name!r} contains '-' or '_': the BOP toolkit cannot read "
+                  "results file names METHOD_DATASET-SPLIT.csv of such a dataset")
     if file_dataset is not None and name and name != file_dataset:
         out.error(path, "file name", f"results for dataset {file_dataset!r}, expected {name!r}")
     if file_split is not None and split and split != file_split:
         out.error(path, "file name", f"results for split {file_split!r}, expected {split!r}")
     root = Path(dataset_root) if dataset_root is not None else None
     if root is not None and not name:
-        name = file_dataset or root.name
-        if file_dataset is not None and file_dataset != root.name:
+        folder_name = dataset_name_of(root)
+        name = file_dataset or folder_name
+        if file_dataset is not None and file_dataset != folder_name:
             out.warning(path, "file name", f"dataset {file_dataset!r} of the file name differs from the folder name of {root}")
 
     rows = []
@@ -530,5 +538,5 @@ def check_results(
         if (n0 := first.setdefault(format_estimate(row.estimate), row.line)) != row.line:
             out.warning(path, f"line {row.line}: row", f"identical to line {n0}")
     if root is not None:
-        _check_result_ids(path, root, name or root.name, split or file_split, rows, out)
+        _check_result_ids(path, root, name or dataset_name_of(root), split or file_split, rows, out)
     return out.items

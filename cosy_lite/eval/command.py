@@ -96,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
     """Check the options, the results file and the dataset (every problem reported, nothing scored
     on bad input), then score and write ``scores.json`` + ``recall_curves.png``."""
     from cosy_lite.bop.command_check_results import resolve_dataset
+    from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report
     from cosy_lite.eval.evaluator import eval_split, evaluate
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     root = resolve_dataset(args.dataset)
     problems = check_results(args.results, root, args.name, args.split)
     if root.is_dir():  # (a missing folder is reported by check_results)
-        split = eval_split(args.name or root.name, args.split)
+        split = eval_split(dataset_name_of(root, args.name), args.split)
         problems += check_dataset(root, args.name, splits=[split])
         if not (root / TARGETS_FILE).is_file():
             problems.append(Problem(str(root / TARGETS_FILE), "", "file not found: the BOP19 evaluation scores "

@@ -38,9 +38,9 @@ class SplitConfig:
 
 @dataclass
 class SynthConfig:
-    """What to generate. Defaults = the default dataset ``ycbv-synth``."""
+    """What to generate. Defaults = the default dataset ``ycbvsynth``."""
 
-    name: str = "ycbv-synth"
+    name: str = "ycbvsynth"
     obj_ids: list[int] = field(default_factory=lambda: list(range(1, 22)))
     seed: int = 0
     train: SplitConfig = field(default_factory=lambda: SplitConfig(n_images=1000, views_per_layout=25, rgb_ext=".jpg"))
