@@ -24,6 +24,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under --data-root) or path")
     ap.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
     ap.add_argument("--split", default="test", help="test split (default: test)")
+    ap.add_argument("--task", default="6d-localization", choices=["6d-localization", "6d-detection"],
+                    help="6d-localization (BOP19: the inst_count best detections per target of test_targets_bop19.json) "
+                         "or 6d-detection (BOP 2024/2025: every detection, at most 100 per image, of the images "
+                         "of test_targets_bop24.json)")
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
@@ -125,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
             precision=args.precision)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
-                           args.limit_images, progress=not args.no_progress, detector_path=detector_path)
+                           args.limit_images, progress=not args.no_progress, detector_path=detector_path,
+                           task=args.task)
     for p in summary.problems:
         print(p)
     for line in summary.lines():

@@ -84,6 +84,14 @@ class Target:
     inst_count: int
 
 
+@dataclass(frozen=True)
+class ImageTarget:
+    """One entry of ``test_targets_bop24.json`` (6D detection: an image, no object or instance count)."""
+
+    scene_id: int
+    im_id: int
+
+
 # ----------------------------------------------------------------------------- json helpers
 
 
@@ -451,6 +459,29 @@ def load_test_targets(path: str | Path, valid_obj_ids: set[int] | None = None) -
         vals["obj_id"] = _check_obj_id(path, f"{where}.obj_id", _get(path, d, "obj_id", where), valid_obj_ids)
         out.append(Target(**vals))
     return out
+
+
+def load_image_targets(path: str | Path) -> list[ImageTarget]:
+    """``test_targets_bop24.json``: a JSON list of ``{"im_id", "scene_id"}`` (other keys are ignored, as
+    the toolkit does: e.g. a BOP19-style ``obj_id``/``inst_count``). Bad entries raise BopFormatError."""
+    path = Path(path)
+    raw = load_json(path)
+    if not isinstance(raw, list):
+        raise BopFormatError(path, "", "expected a JSON list of {im_id, scene_id}")
+    out = []
+    for i, d in enumerate(raw):
+        vals = {}
+        for fld in ("scene_id", "im_id"):
+            v = _get(path, d, fld, f"[{i}]")
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise BopFormatError(path, f"[{i}].{fld}", f"expected a non-negative integer, got {v!r}")
+            vals[fld] = v
+        out.append(ImageTarget(**vals))
+    return out
+
+
+def image_targets_to_json(targets: list[ImageTarget]) -> list[dict[str, int]]:
+    return [{"im_id": t.im_id, "scene_id": t.scene_id} for t in targets]
 
 
 def targets_to_json(targets: list[Target]) -> list[dict[str, int]]:

@@ -3,7 +3,8 @@
 Per layout: a random subset of the dataset's objects plus distractors is dropped into a box and
 settled by MuJoCo; the room gets random textures, lights and materials; ``views_per_layout``
 cameras look at objects near the centre. Output in the BOP layout, ``train_pbr`` in chunks of
-``chunk_size`` images, ``test`` one scene per layout, plus ``test_targets_bop19.json``.
+``chunk_size`` images, ``test`` one scene per layout, plus ``test_targets_bop19.json`` and
+``test_targets_bop24.json``.
 
 Deterministic per seed: each layout draws from its own ``SeedSequence((seed, split, layout))``,
 so the worker count does not change the result. Resumable: finished chunks are skipped.
@@ -186,7 +187,8 @@ def write_camera_json(root: Path, cfg: SynthConfig) -> None:
 
 
 def write_test_targets(root: Path, cfg: SynthConfig) -> list[io.Target]:
-    """Instances with visib_fract >= min_visib_fract_target, counted per (scene, image, object)."""
+    """BOP19 targets: instances with visib_fract >= min_visib_fract_target, counted per (scene, image, object);
+    BOP24 targets (6D detection): the images with at least one of them."""
     targets = []
     test_dir = root / "test"
     for scene_dir in sorted(p for p in test_dir.iterdir() if p.is_dir()):
@@ -196,6 +198,8 @@ def write_test_targets(root: Path, cfg: SynthConfig) -> list[io.Target]:
             counts = Counter(g.obj_id for g, i in zip(gts[im_id], infos[im_id]) if i.visib_fract >= cfg.min_visib_fract_target)
             targets += [io.Target(int(scene_dir.name), im_id, o, c) for o, c in sorted(counts.items())]
     io.save_json(root / "test_targets_bop19.json", io.targets_to_json(targets))
+    images = list(dict.fromkeys(io.ImageTarget(t.scene_id, t.im_id) for t in targets))  # images with a target
+    io.save_json(root / "test_targets_bop24.json", io.image_targets_to_json(images))
     return targets
 
 
