@@ -346,6 +346,52 @@ def load_scene_camera(path: str | Path) -> dict[int, CameraRecord]:
     return out
 
 
+@dataclass
+class CameraFile:
+    """Intrinsics of one camera read by :func:`load_camera_file`."""
+
+    K: np.ndarray  # [3,3] px
+    size: tuple[int, int] | None = None  # (width, height) px, if the file states it
+    depth_scale: float | None = None  # depth image value * depth_scale = mm, if the file states it
+
+
+def load_camera_file(path: str | Path) -> CameraFile:
+    """One camera's intrinsics from JSON: a BOP ``camera.json`` (``fx, fy, cx, cy`` [, ``width, height,
+    depth_scale``]), a ``scene_camera.json`` entry (``cam_K`` row-major [, ``depth_scale``]) or ``{"K":
+    [[..], [..], [..]]}``. Anything else raises BopFormatError naming the file and field."""
+    path = Path(path)
+    d = load_json(path)
+    if not isinstance(d, dict):
+        raise BopFormatError(path, "", "expected a JSON object with fx, fy, cx, cy (BOP camera.json), cam_K or K")
+    if "cam_K" in d or "K" in d:
+        fld = "cam_K" if "cam_K" in d else "K"
+        K = _numbers(path, fld, d[fld], 9).reshape(3, 3)
+        if abs(K[2, 2] - 1) > 1e-6 or np.any(K[2, :2] != 0) or K[1, 0] != 0:
+            raise BopFormatError(path, fld, f"not an intrinsic matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: {K.tolist()}")
+    else:
+        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in d]
+        if missing:
+            raise BopFormatError(path, missing[0], "missing field (expected fx, fy, cx, cy as in BOP camera.json, "
+                                 "or cam_K / K)")
+        fx, fy, cx, cy = (float(_numbers(path, k, d[k], 1)[0]) for k in ("fx", "fy", "cx", "cy"))
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        fld = "fx"
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise BopFormatError(path, fld, f"focal lengths must be > 0 px, got fx = {K[0, 0]}, fy = {K[1, 1]}")
+    size = None
+    if "width" in d or "height" in d:
+        w, h = (_numbers(path, k, _get(path, d, k, ""), 1)[0] for k in ("width", "height"))
+        if w <= 0 or h <= 0 or w != int(w) or h != int(h):
+            raise BopFormatError(path, "width", f"image size must be positive integers, got {w} x {h}")
+        size = (int(w), int(h))
+    depth_scale = None
+    if "depth_scale" in d:
+        depth_scale = float(_numbers(path, "depth_scale", d["depth_scale"], 1)[0])
+        if depth_scale <= 0:
+            raise BopFormatError(path, "depth_scale", f"must be > 0 (depth value * depth_scale = mm), got {depth_scale}")
+    return CameraFile(K, size, depth_scale)
+
+
 def scene_camera_to_json(cams: dict[int, CameraRecord]) -> dict[str, Any]:
     out = {}
     for im_id in sorted(cams):

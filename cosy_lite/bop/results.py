@@ -192,6 +192,14 @@ def format_estimate(e: PoseEstimate) -> str:
     return f"{int(e.scene_id)},{int(e.im_id)},{int(e.obj_id)},{_fmt(e.score)},{R},{t},{_fmt(e.time)}"
 
 
+def estimate_to_json(e: PoseEstimate) -> dict:
+    """One estimate as JSON-ready numbers at the BOP boundary: ``obj_id``, ``score``, ``R`` [3][3]
+    (row-major rows), ``t`` [3] in mm, ``time`` (s), and ``bop19_csv_row`` (its line of a results file)."""
+    TCO = np.asarray(e.TCO, dtype=np.float64)
+    return {"obj_id": int(e.obj_id), "score": float(e.score), "R": TCO[:3, :3].tolist(),
+            "t": [float(v * 1000.0) for v in TCO[:3, 3]], "time": float(e.time), "bop19_csv_row": format_estimate(e)}
+
+
 def write_results_csv(path: str | Path, estimates: Iterable[PoseEstimate]) -> None:
     """Write a BOP19 results file atomically (TCO in metres -> t in mm).
 
