@@ -54,6 +54,8 @@ class SynthConfig:
     min_visib_fract_target: float = 0.1  # BOP19 test targets
     visib_delta: float = 0.015  # metres
     workers: int = 1
+    models_dir: str | None = None  # your own meshes instead of the YCB-V library (cosy_lite.synth.custom_objects)
+    models_units: str = "mm"  # of the meshes in models_dir: mm or m (checked for plausibility)
     layout: LayoutConfig = field(default_factory=LayoutConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
@@ -211,7 +213,14 @@ def generate(cfg: SynthConfig, root: str | Path, splits: tuple[str, ...] = ("tra
 
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    write_bop_models(cfg.obj_ids, root)
+    if cfg.models_dir:
+        from dataclasses import replace
+
+        from cosy_lite.synth.custom_objects import write_custom_models
+
+        cfg = replace(cfg, obj_ids=sorted(write_custom_models(cfg.models_dir, cfg.models_units, root)))
+    else:
+        write_bop_models(cfg.obj_ids, root)
     write_camera_json(root, cfg)
 
     todo: list[tuple[Path, list[LayoutTask]]] = []
