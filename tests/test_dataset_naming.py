@@ -119,3 +119,19 @@ def test_dataset_argument_with_the_old_name(tmp_path: Path):
     assert dataset_folder("tiny", tmp_path) == tmp_path / "tiny"
     with pytest.raises(KeyError, match="now called 'ycbvsynth'"):
         get_dataset_params("ycbv-synth")
+
+
+def test_check_results_names_a_misread_of_the_folder_name(tmp_path: Path):
+    root = write_tiny_bop(tmp_path, "my-objects")
+    path = _one_estimate_csv(tmp_path, "cosylite_my-objects-test.csv")
+    msgs = [p.message for p in check_results(path, root) if p.severity == "error"]
+    assert any("reads dataset 'my', split 'objects', split type 'test'" in m and "cosylite_myobjects-test.csv" in m
+               for m in msgs), msgs
+
+
+def test_method_with_underscore_says_how_the_toolkit_reads_it():
+    with pytest.raises(BopFormatError, match=r"exactly one '_' \(the BOP toolkit would read method 'm', dataset "
+                                             r"'ycbv', split 'test'\)"):
+        parse_results_filename("m_ycbv-test_run2.csv")  # the toolkit's optional id: not ours
+    with pytest.raises(BopFormatError, match=r"the BOP toolkit cannot read it"):
+        parse_results_filename("cosy_lite_ycbv-test.csv")

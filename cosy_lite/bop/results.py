@@ -115,7 +115,13 @@ def parse_results_filename(path: str | Path) -> tuple[str, str, str]:
         raise BopFormatError(path, "file name", f"{path.name!r}: the BOP toolkit ends the name at the first '.'; {expected}")
     parts = path.stem.split("_")
     if len(parts) != 2 or not all(parts):
-        raise BopFormatError(path, "file name", f"{path.name!r} needs exactly one '_'; {expected}")
+        try:
+            t = toolkit_parse_results_filename(path)
+            reading = (f"the BOP toolkit would read method {t.method!r}, dataset {t.dataset!r}, split {t.split!r}"
+                       + (f", split type {t.split_type!r}" if t.split_type else ""))
+        except BopFormatError:
+            reading = "the BOP toolkit cannot read it"
+        raise BopFormatError(path, "file name", f"{path.name!r} needs exactly one '_' ({reading}); {expected}")
     dataset_info = parts[1].split("-")
     if len(dataset_info) < 2 or not all(dataset_info):
         raise BopFormatError(path, "file name", f"{path.name!r} has no DATASET-SPLIT part; {expected}")
@@ -127,17 +133,18 @@ def parse_results_filename(path: str | Path) -> tuple[str, str, str]:
     return name.method, name.dataset, "-".join(dataset_info[1:])
 
 
-def misread_dataset(path: str | Path) -> str | None:
+def misread_dataset(path: str | Path, names: Iterable[str] = ()) -> str | None:
     """Why the toolkit would misread the dataset of a results file name (None: it reads it right).
 
-    That is the case when ``DATASET-SPLIT`` starts with a known dataset name containing ``-``
-    (an old name of :data:`~cosy_lite.bop.params.RENAMED_DATASETS`, or a row of the table).
+    That is the case when ``DATASET-SPLIT`` starts with a dataset name containing ``-``: an old
+    name of :data:`~cosy_lite.bop.params.RENAMED_DATASETS`, a row of the table, or one of ``names``
+    (e.g. the dataset folder's name).
     """
     from cosy_lite.bop.params import RENAMED_DATASETS
 
     path = Path(path)
     rest = path.stem.partition("_")[2]
-    for name in sorted({*RENAMED_DATASETS, *DATASETS}, key=len, reverse=True):
+    for name in sorted({*RENAMED_DATASETS, *DATASETS, *names}, key=len, reverse=True):
         if "-" in name and rest.startswith(name + "-"):
             t = toolkit_parse_results_filename(path)
             fix = RENAMED_DATASETS.get(name, name.replace("-", ""))

@@ -498,7 +498,8 @@ def check_results(
     except BopFormatError as e:
         out.items.append(Problem.from_error(e))
         file_dataset = file_split = None
-    if file_dataset is not None and (why := misread_dataset(path)) is not None:
+    given = [n for n in (name, dataset_name_of(dataset_root) if dataset_root is not None else None) if n]
+    if file_dataset is not None and (why := misread_dataset(path, given)) is not None:
         out.error(path, "file name", why)
         file_dataset = file_split = None  # what the toolkit reads is not what the file is for
     if name and ("-" in name or "_" in name):
