@@ -15,6 +15,7 @@ import pytest
 from bop_fixtures import GT, edit_json, scene_dir, write_tiny_bop
 
 from cosy_lite.bop.results import PoseEstimate, write_results_csv
+from cosy_lite.errors import BopFormatError
 from cosy_lite.eval.pose_detection import (
     GroupErrors, average_precision, evaluate_6d_detection, object_average_precisions, score_groups, top_per_image,
 )
@@ -195,3 +196,22 @@ def test_eval_command_6d_detection(root: Path, capsys):
     (root / "test_targets_bop24.json").unlink()
     assert main(["eval", "--dataset", str(root), "--results", str(csv), "--task", "6d-detection"]) != 0
     assert "test_targets_bop24.json" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- the targets file
+
+
+def test_bop24_targets_are_read_and_checked(root: Path):
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.validate import check_dataset
+
+    assert [(t.scene_id, t.im_id) for t in BopDataset(root).test_image_targets()] == [(0, 0), (0, 1)]
+    assert [p for p in check_dataset(root) if "bop24" in p.path] == []
+    path = root / "test_targets_bop24.json"
+    path.write_text(json.dumps([{"im_id": 0, "scene_id": 0}, {"im_id": 7, "scene_id": 0}, {"im_id": 0, "scene_id": 3},
+                                {"im_id": 0, "scene_id": 0}]))
+    found = {(p.field, p.severity) for p in check_dataset(root) if p.path == str(path)}
+    assert found == {("[1].im_id", "error"), ("[2].scene_id", "error"), ("[3]", "warning")}
+    path.write_text(json.dumps([{"im_id": -1, "scene_id": 0}]))
+    with pytest.raises(BopFormatError, match=r"test_targets_bop24.json \[\[0\].im_id\]: expected a non-negative integer"):
+        BopDataset(root).test_image_targets()

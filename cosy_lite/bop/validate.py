@@ -29,6 +29,7 @@ MODEL_DIRS = ("models", "models_eval")
 SCENE_FILES = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
 MASK_DIRS = ("mask", "mask_visib")
 TARGETS_FILE = "test_targets_bop19.json"
+TARGETS_BOP24_FILE = "test_targets_bop24.json"  # 6D detection: images only
 UNIT_MIXUP_RATIO = 30.0  # model extent and diameter further apart than this: mm/m mix-up (~1000x)
 DIAMETER_TOL = 0.05  # relative slack when comparing a diameter with the model's bounding box
 MAX_LISTED = 10  # ids listed in one message
@@ -382,6 +383,32 @@ def _check_targets(
                 ))
 
 
+def _check_image_targets(root: Path, params: DatasetParams | None, index: dict[str, dict[int, _SceneIndex]],
+                         out: _Collector) -> None:
+    """``test_targets_bop24.json`` (6D detection), if present: every entry an image of the test split, no repeats."""
+    path = root / TARGETS_BOP24_FILE
+    if not path.is_file():
+        return
+    targets = out.load(io.load_image_targets, path)
+    if targets is None:
+        return
+    split = _test_split(root, params)
+    split_dir = root / split
+    scenes = index[split] if split in index else _index_split_quietly(split_dir) if split_dir.is_dir() else None
+    if scenes is None:
+        out.error(path, "", f"the test split folder {split_dir} the targets refer to does not exist")
+        return
+    seen: dict[tuple[int, int], int] = {}
+    for i, t in enumerate(targets):
+        if (j := seen.setdefault((t.scene_id, t.im_id), i)) != i:
+            out.warning(path, f"[{i}]", f"same scene_id/im_id as target [{j}] (the toolkit keeps one)")
+        scene_dir = split_dir / f"{t.scene_id:06d}"
+        if (sc := scenes.get(t.scene_id)) is None:
+            out.error(path, f"[{i}].scene_id", f"scene {t.scene_id} not found: no folder {scene_dir}")
+        elif sc.im_ids is not None and t.im_id not in sc.im_ids:
+            out.error(path, f"[{i}].im_id", f"image {t.im_id} not in {scene_dir / 'scene_camera.json'}")
+
+
 def check_dataset(
     root: str | Path, name: str | None = None, splits: list[str] | None = None, check_images: bool = True,
 ) -> list[Problem]:
@@ -426,6 +453,7 @@ def check_dataset(
             for d in tqdm(scene_dirs, desc=f"check {split}", unit="scene", disable=None)
         }
     _check_targets(root, params, obj_ids, index, out)
+    _check_image_targets(root, params, index, out)
     return out.items
 
 
