@@ -108,20 +108,21 @@ def run(args: argparse.Namespace) -> int:
     if problem := _argument_problem(args):
         print(f"error: {problem}", file=sys.stderr)
         return 2
+    task = getattr(args, "task", "6d-localization")  # (namespaces built in code before the option existed)
     root = resolve_dataset(args.dataset)
     problems = check_results(args.results, root, args.name, args.split)
     if root.is_dir():  # (a missing folder is reported by check_results)
         split = eval_split(dataset_name_of(root, args.name), args.split)
         problems += check_dataset(root, args.name, splits=[split])
-        targets = TARGETS_FILE if args.task == "6d-localization" else "test_targets_bop24.json"
+        targets = TARGETS_FILE if task == "6d-localization" else "test_targets_bop24.json"
         if not (root / targets).is_file():
-            problems.append(Problem(str(root / targets), "", f"file not found: the {args.task} evaluation scores "
+            problems.append(Problem(str(root / targets), "", f"file not found: the {task} evaluation scores "
                                     "the targets it lists"))
     if any(p.severity == "error" for p in problems):
         return report(problems, f"{args.results} on {root}")
     for p in problems:
         print(p)
-    if args.task == "6d-detection":
+    if task == "6d-detection":
         return _run_6d_detection(args, root)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress)
