@@ -135,3 +135,14 @@ def test_method_with_underscore_says_how_the_toolkit_reads_it():
         parse_results_filename("m_ycbv-test_run2.csv")  # the toolkit's optional id: not ours
     with pytest.raises(BopFormatError, match=r"the BOP toolkit cannot read it"):
         parse_results_filename("cosy_lite_ycbv-test.csv")
+
+
+def test_check_dataset_reports_an_old_folder_name(tmp_path: Path):
+    from cosy_lite.bop.validate import check_dataset
+
+    root = write_tiny_bop(tmp_path, "ycbv-synth")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # reported as a problem, not as a Python warning
+        problems = check_dataset(root)
+    named = [p for p in problems if p.field == "name"]
+    assert len(named) == 1 and named[0].severity == "warning" and "mv " in named[0].message

@@ -136,17 +136,19 @@ def renamed_dataset_message(old: str, folder: object | None = None) -> str:
     return msg
 
 
-def current_dataset_name(name: str, folder: object | None = None) -> str:
-    """``name``, or its new name (with a warning naming ``folder``) if it is an old one of :data:`RENAMED_DATASETS`."""
+def current_dataset_name(name: str, folder: object | None = None, warn: bool = True) -> str:
+    """``name``, or its new name (with a warning naming ``folder``, if ``warn``) if it is an old one of
+    :data:`RENAMED_DATASETS`."""
     if name not in RENAMED_DATASETS:
         return name
-    warnings.warn(renamed_dataset_message(name, folder) + f"; read as {RENAMED_DATASETS[name]!r}", stacklevel=2)
+    if warn:
+        warnings.warn(renamed_dataset_message(name, folder) + f"; read as {RENAMED_DATASETS[name]!r}", stacklevel=3)
     return RENAMED_DATASETS[name]
 
 
-def dataset_name_of(root: str | Path, name: str | None = None) -> str:
+def dataset_name_of(root: str | Path, name: str | None = None, warn: bool = True) -> str:
     """The dataset name of folder ``root``: ``name`` if given, else the folder name (old names mapped to new ones)."""
-    return current_dataset_name(name or Path(root).name, None if name else root)
+    return current_dataset_name(name or Path(root).name, None if name else root, warn)
 
 
 def register_dataset(params: DatasetParams) -> None:

@@ -18,7 +18,8 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import IMAGE_EXTS
-from cosy_lite.bop.params import DATASETS, DatasetParams, SplitParams, dataset_name_of
+from cosy_lite.bop.params import (DATASETS, RENAMED_DATASETS, DatasetParams, SplitParams, dataset_name_of,
+                                  renamed_dataset_message)
 from cosy_lite.bop.results import (ResultRow, format_estimate, misread_dataset, parse_results_csv,
                                    parse_results_filename)
 from cosy_lite.errors import BopFormatError
@@ -423,9 +424,11 @@ def check_dataset(
     from tqdm import tqdm
 
     root = Path(root)
-    name = dataset_name_of(root, name)
-    params = DATASETS.get(name)
     out = _Collector()
+    if not name and root.name in RENAMED_DATASETS:  # reported here, not as a Python warning
+        out.warning(root, "name", renamed_dataset_message(root.name, root) + f"; read as {RENAMED_DATASETS[root.name]!r}")
+    name = dataset_name_of(root, name, warn=False)
+    params = DATASETS.get(name)
     if not root.is_dir():
         out.error(root, "", "dataset folder not found")
         return out.items
