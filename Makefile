@@ -14,9 +14,9 @@ setup:
 
 # generate -> train detector, coarse, refiner (demo profiles) -> infer (RGB, ICP, oracle boxes) -> eval
 demo: setup
-	$(PY) -m cosy_lite.cli generate --out $(DATA)/ycbv-synth --workers 2
-	$(PY) -m cosy_lite.cli show $(DATA)/ycbv-synth --split test --scene 0 --image 0 --out outputs/demo_show_test_000000_000000.png
-	$(PY) -m cosy_lite.cli contact-sheet $(DATA)/ycbv-synth --split train_pbr -n 16 --out outputs/demo_contact_sheet.png
+	$(PY) -m cosy_lite.cli generate --out $(DATA)/ycbvsynth --workers 2
+	$(PY) -m cosy_lite.cli show $(DATA)/ycbvsynth --split test --scene 0 --image 0 --out outputs/demo_show_test_000000_000000.png
+	$(PY) -m cosy_lite.cli contact-sheet $(DATA)/ycbvsynth --split train_pbr -n 16 --out outputs/demo_contact_sheet.png
 	$(PY) -m cosy_lite.cli demo --data-root $(DATA)
 
 test: setup

@@ -5,10 +5,10 @@ or the exported ONNX networks (``--backend onnx``: :meth:`~cosy_lite.inference.p
 hand over to :func:`cosy_lite.inference.bop_run.run_on_split` (ViVo targets, CSV
 ``METHOD_DATASET-SPLIT.csv``, overlays, results checker). Examples::
 
-    python infer.py --dataset ycbv-synth --detector runs/ycbv-synth-detector/checkpoint.pt \\
-        --coarse runs/ycbv-synth-coarse/checkpoint.pt --refiner runs/ycbv-synth-refiner/checkpoint.pt \\
+    python infer.py --dataset ycbvsynth --detector runs/ycbvsynth-detector/checkpoint.pt \\
+        --coarse runs/ycbvsynth-coarse/checkpoint.pt --refiner runs/ycbvsynth-refiner/checkpoint.pt \\
         --out results/ --vis 8
-    python infer.py --dataset ycbv-synth --backend onnx --models models/ --threads 2 --out results/
+    python infer.py --dataset ycbvsynth --backend onnx --models models/ --threads 2 --out results/
 """
 
 from __future__ import annotations
@@ -21,9 +21,13 @@ from pathlib import Path
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dataset", default="ycbv-synth", help="dataset name (folder under --data-root) or path")
+    ap.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under --data-root) or path")
     ap.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
     ap.add_argument("--split", default="test", help="test split (default: test)")
+    ap.add_argument("--task", default="6d-localization", choices=["6d-localization", "6d-detection"],
+                    help="6d-localization (BOP19: the inst_count best detections per target of test_targets_bop19.json) "
+                         "or 6d-detection (BOP 2024/2025: every detection, at most 100 per image, of the images "
+                         "of test_targets_bop24.json)")
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
@@ -89,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.inference.bop_run import run_on_split
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.synth.command import default_data_root
+    from cosy_lite.synth.command import dataset_folder
 
     use_egl()
     problem = _backend_problem(args) or _argument_problem(args)
@@ -104,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"error: --method / --split: {e}", file=sys.stderr)
         return 2
-    root = Path(args.dataset) if Path(args.dataset).is_dir() else (args.data_root or default_data_root()) / args.dataset
+    root = dataset_folder(args.dataset, args.data_root)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = BopDataset(root)
@@ -125,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
             precision=args.precision)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
-                           args.limit_images, progress=not args.no_progress, detector_path=detector_path)
+                           args.limit_images, progress=not args.no_progress, detector_path=detector_path,
+                           task=args.task)
     for p in summary.problems:
         print(p)
     for line in summary.lines():

@@ -1,4 +1,4 @@
-"""Train a cosy_lite model: ``python train.py --dataset ycbv-synth --model detector|coarse|refiner``.
+"""Train a cosy_lite model: ``python train.py --dataset ycbvsynth --model detector|coarse|refiner``.
 
 Thin wrapper: parse, find (or generate) the dataset, validate it, hand over to
 :func:`cosy_lite.train.command.run` (config: ``configs/MODEL/PROFILE.yaml`` + ``key=value`` overrides).
@@ -14,12 +14,12 @@ import sys
 from pathlib import Path
 
 MODELS = ("detector", "coarse", "refiner")
-SYNTH_CONFIGS = {"ycbv-synth": None, "tiny": Path(__file__).parent / "configs" / "synth" / "tiny.yaml"}
+SYNTH_CONFIGS = {"ycbvsynth": None, "tiny": Path(__file__).parent / "configs" / "synth" / "tiny.yaml"}
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dataset", default="ycbv-synth", help="dataset name (folder under --data-root) or path")
+    ap.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under --data-root) or path")
     ap.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
     ap.add_argument("--model", choices=MODELS, required=True)
     ap.add_argument("--profile", default="demo", help="configs/MODEL/PROFILE.yaml: demo (CPU, minutes) or full (GPUs)")
@@ -32,12 +32,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Load the config, find (or generate) the dataset, validate it, train."""
+    from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.validate import check_dataset, report
-    from cosy_lite.synth.command import default_data_root
+    from cosy_lite.synth.command import dataset_folder
     from cosy_lite.train.command import load_train_config, run as train
 
-    root = Path(args.dataset) if Path(args.dataset).is_dir() else (args.data_root or default_data_root()) / args.dataset
-    cfg = load_train_config(args, root.name)  # a bad config fails before any data work
+    root = dataset_folder(args.dataset, args.data_root)
+    name = dataset_name_of(root)
+    cfg = load_train_config(args, name)  # a bad config fails before any data work
     if not root.is_dir():
         if args.dataset not in SYNTH_CONFIGS:
             print(f"error: dataset folder {root} not found (BOP datasets cannot be downloaded here; "
@@ -49,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         generate(load_config(SynthConfig, SYNTH_CONFIGS[args.dataset]), root)
     if report(check_dataset(root, splits=["train_pbr"]), str(root)):
         return 1
-    args.dataset_name = root.name
+    args.dataset_name = name
     return train(root, args, cfg)
 
 

@@ -1,7 +1,7 @@
 """Benchmark of trained detectors (``cosy_lite.train.detector_task``): COCO AP and ms per image.
 
-Usage: python bench/bench_detector.py [--checkpoint runs/ycbv-synth-detector/checkpoint.pt ...]
-       [--dataset data/ycbv-synth] [--split test] [--threads 2] [--out-dir runs/ycbv-synth-detector]
+Usage: python bench/bench_detector.py [--checkpoint runs/ycbvsynth-detector/checkpoint.pt ...]
+       [--dataset data/ycbvsynth] [--split test] [--threads 2] [--out-dir runs/ycbvsynth-detector]
 
 For each checkpoint (one per backbone): the detector is loaded with ``load_detector``, run on every
 image of the split one image at a time (CPU, ``--threads`` torch threads), and scored with COCO
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_CKPT = Path("runs/ycbv-synth-detector/checkpoint.pt")
+DEFAULT_CKPT = Path("runs/ycbvsynth-detector/checkpoint.pt")
 
 
 def bench_checkpoint(path: Path, root: Path, split: str, out_dir: Path | None) -> dict:
@@ -66,7 +66,7 @@ def _fmt(v) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", type=Path, nargs="+", default=[DEFAULT_CKPT])
-    ap.add_argument("--dataset", type=Path, default=Path("data/ycbv-synth"))
+    ap.add_argument("--dataset", type=Path, default=Path("data/ycbvsynth"))
     ap.add_argument("--split", default="test")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out-dir", type=Path, default=None, help="where the BOP22 JSON goes (default: the checkpoint's folder)")

@@ -1,7 +1,7 @@
 """Benchmark of the BOP19 evaluator: end-to-end time (load, render, score) per number of estimates.
 
 Usage: python bench/bench_eval.py DATASET_DIR [--estimates 34 1000] [--repeat R]
-For the test split of DATASET_DIR (e.g. data/ycbv-synth from `make demo`) it writes a results CSV
+For the test split of DATASET_DIR (e.g. data/ycbvsynth from `make demo`) it writes a results CSV
 of the GT poses perturbed by a fixed noise (1 estimate per target instance, in image order,
 truncated to N) and a targets file restricted to the images holding them, then times
 ``cosy_lite.eval.evaluator.evaluate`` on it (the best of R runs) and prints a table. When N is

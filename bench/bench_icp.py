@@ -1,6 +1,6 @@
 """Benchmark of the depth ICP (``cosy_lite.inference.icp``): ms per object and accuracy.
 
-Usage: python bench/bench_icp.py [--objects 1 5] [--repeats 10] [--dataset data/ycbv-synth --images 20]
+Usage: python bench/bench_icp.py [--objects 1 5] [--repeats 10] [--dataset data/ycbvsynth --images 20]
 
 Latency: one 640x480 image (YCB-V camera) holding 5 asymmetric YCB-V objects (mustard bottle,
 power drill, banana, pitcher base, large clamp; meshes from ``cosy_lite.synth.objects``, no files
@@ -11,7 +11,7 @@ call per image), one warm-up then ``--repeats`` calls; the table gives the media
 time per image, the median per object, its breakdown (median over calls of the per-object mean;
 render is the per-object share of the batched call) and the errors after ICP.
 
-``--dataset``: the same on the test split of a BOP dataset (e.g. the synthetic ``ycbv-synth``):
+``--dataset``: the same on the test split of a BOP dataset (e.g. the synthetic ``ycbvsynth``):
 every GT instance with visib_fract >= 0.1 of the first ``--images`` images, its ``mask_visib``,
 the dataset's depth + 1 mm noise, starts GT + 1 cm / 5 deg; acceptance rate, MSSD (BOP's
 symmetry-aware maximum surface distance) before / after and the MSSD recall (AR_MSSD) before / after.

@@ -1,6 +1,6 @@
 """Latency of the inference pipeline (``cosy_lite.inference.predictor``) on one 640x480 image.
 
-Usage: python bench/bench_inference.py [--dataset data/ycbv-synth] [--objects 1 5] [--repeats 5]
+Usage: python bench/bench_inference.py [--dataset data/ycbvsynth] [--objects 1 5] [--repeats 5]
        [--threads 2] [--detector CKPT] [--profiles effb3 demo] [--precisions fp32 bf16] [--no-icp]
 
 The image: the first test image of ``--dataset`` with at least 5 instances >= 50 % visible; its
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> None:
 
     use_egl()
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--dataset", type=Path, default=Path("data/ycbv-synth"))
+    p.add_argument("--dataset", type=Path, default=Path("data/ycbvsynth"))
     p.add_argument("--objects", type=int, nargs="+", default=[1, 5])
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--warmup", type=int, default=2)

@@ -1,6 +1,6 @@
 """onnxruntime vs torch on the CPU: pose-network forward passes and end-to-end pose latency.
 
-Usage: python bench/bench_onnx.py [--dataset data/ycbv-synth] [--threads 2] [--repeat 10]
+Usage: python bench/bench_onnx.py [--dataset data/ycbvsynth] [--threads 2] [--repeat 10]
        [--profiles effb3 demo] [--batches 1 8] [--objects 1 5] [--no-int8] [--no-detector] [--write]
 
 1. Pose-network forward, per profile (backbone + crop size; untrained weights, which cost the same
@@ -224,7 +224,7 @@ def cpu_name() -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--dataset", type=Path, default=Path("data/ycbv-synth"))
+    p.add_argument("--dataset", type=Path, default=Path("data/ycbvsynth"))
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--repeat", type=int, default=10)
     p.add_argument("--warmup", type=int, default=2)

@@ -6,8 +6,8 @@
    MSSD recall at 10% of the diameter (BOP's MSSD: models_eval vertices, the toolkit's symmetry set).
 Also crops/s of the render-and-compare iteration (crop + render + network forward).
 
-    python bench/bench_pose.py --coarse runs/ycbv-synth-coarse/checkpoint.pt \
-        --refiner runs/ycbv-synth-refiner/checkpoint.pt [--dataset data/ycbv-synth] [--max-instances 400]
+    python bench/bench_pose.py --coarse runs/ycbvsynth-coarse/checkpoint.pt \
+        --refiner runs/ycbvsynth-refiner/checkpoint.pt [--dataset data/ycbvsynth] [--max-instances 400]
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dataset", type=Path, default=Path("data/ycbv-synth"))
+    ap.add_argument("--dataset", type=Path, default=Path("data/ycbvsynth"))
     ap.add_argument("--split", default="test")
     ap.add_argument("--coarse", type=Path, default=None)
     ap.add_argument("--refiner", type=Path, required=True)

@@ -1,6 +1,6 @@
 """Training throughput of the pose networks: crops/s and where a step's time goes.
 
-    python bench/bench_pose_training.py data/ycbv-synth [--model refiner] [--profile demo] [--steps 30]
+    python bench/bench_pose_training.py data/ycbvsynth [--model refiner] [--profile demo] [--steps 30]
         [--threads 1] [key=value ...]
 
 Runs ``--steps`` real training steps of the profile (the task's own ``compute_losses``, Adam, the

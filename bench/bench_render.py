@@ -3,7 +3,7 @@
 Usage: python bench/bench_render.py [--models DIR] [--objects 2 3 4 5 8 9] [--batches 8 32]
        [--resolutions 240x320 120x160] [--calls 10] [--baselines]
 
-Models: ``DIR`` (a BOP ``models/`` folder, default ``data/ycbv-synth/models`` when present), else
+Models: ``DIR`` (a BOP ``models/`` folder, default ``data/ycbvsynth/models`` when present), else
 the YCB-V library's models written to a temporary folder by ``cosy_lite.synth.objects``. Default
 objects: the six textured YCB-V models (16384 faces, 1024x1024 textures). Poses: uniformly random
 rotations, the object's centre near the crop's centre, at the depth where its diameter spans the
@@ -30,7 +30,7 @@ from typing import Callable
 import numpy as np
 
 TEXTURED_YCBV = [2, 3, 4, 5, 8, 9]
-DEFAULT_MODELS = Path("data/ycbv-synth/models")
+DEFAULT_MODELS = Path("data/ycbvsynth/models")
 YCBV_FX = 1066.778  # YCB-V focal length (px) at 640x480; crops use it scaled to their height
 
 
@@ -159,7 +159,7 @@ def render_tiled(renderer, *args, **kwargs):
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", type=Path, default=None,
-                    help="BOP models/ folder (default: data/ycbv-synth/models if present)")
+                    help="BOP models/ folder (default: data/ycbvsynth/models if present)")
     ap.add_argument("--objects", type=int, nargs="+", default=TEXTURED_YCBV)
     ap.add_argument("--batches", type=int, nargs="+", default=[8, 32])
     ap.add_argument("--resolutions", type=parse_resolution, nargs="+", default=[(240, 320), (120, 160)])

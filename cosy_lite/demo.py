@@ -3,7 +3,7 @@
 Steps, each a separate process (the commands a user would type), each skipped when its output
 is already there, so an interrupted demo continues where it stopped:
 
-1. generate the default dataset ``ycbv-synth`` (if absent) and validate it;
+1. generate the default dataset ``ycbvsynth`` (if absent) and validate it;
 2. train the detector, the coarse model and the refiner (``configs/MODEL/demo.yaml`` with a
    shorter time budget per model, :attr:`DemoConfig.train_minutes`); a run folder with a
    checkpoint but no ``DONE`` marker is resumed;
@@ -40,7 +40,7 @@ class InferRun:
 
 @dataclass
 class DemoConfig:
-    dataset: str = "ycbv-synth"
+    dataset: str = "ycbvsynth"
     data_root: Path = REPO / "data"
     runs: Path = REPO / "runs" / "demo"
     out: Path = REPO / "outputs"
@@ -208,6 +208,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    from cosy_lite.bop.params import RENAMED_DATASETS, renamed_dataset_message
+    from cosy_lite.errors import BopFormatError
+
+    if args.dataset in RENAMED_DATASETS:
+        raise BopFormatError(args.data_root / args.dataset, "--dataset", renamed_dataset_message(args.dataset)
+                             + f": use --dataset {RENAMED_DATASETS[args.dataset]}")
     cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=args.out)
     if args.minutes:
         cfg.train_minutes = dict(zip(MODELS, args.minutes))

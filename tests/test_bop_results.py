@@ -112,7 +112,7 @@ def test_write_refuses_bad_pose(tmp_path: Path, change, match):
 def test_results_filename():
     assert results_filename("cosylite", "ycbv", "test") == "cosylite_ycbv-test.csv"
     assert parse_results_filename("/x/cosylite_ycbv-test.csv") == ("cosylite", "ycbv", "test")
-    assert parse_results_filename("m-v2_ycbv-synth-test.csv") == ("m-v2", "ycbv-synth", "test")
+    assert parse_results_filename("m-v2_ycbvsynth-test.csv") == ("m-v2", "ycbvsynth", "test")
     assert parse_results_filename("m_tless-test-primesense.csv") == ("m", "tless", "test-primesense")
 
 

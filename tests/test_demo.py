@@ -32,7 +32,7 @@ def test_training_runs_each_model_once_with_its_budget_and_resumes_unfinished_ru
     (cfg.runs / "coarse" / "checkpoint.pt").write_bytes(b"")  # interrupted run: resumed
     (cfg.runs / "refiner").mkdir(parents=True)
     (cfg.runs / "refiner" / "DONE").write_text("")  # finished run: skipped
-    demo.train_models(cfg, tmp_path / "data" / "ycbv-synth")
+    demo.train_models(cfg, tmp_path / "data" / "ycbvsynth")
     assert [c[c.index("--model") + 1] for c in recorded] == ["detector", "coarse"]
     det, coarse = recorded
     budgets = cfg.train_minutes

@@ -1,7 +1,7 @@
 """A BOP dataset on disk: paths, cached scene files, iteration over images.
 
 Layout (BOP format): ``ROOT/models``, ``ROOT/models_eval``, ``ROOT/<split>/<scene:06d>/...`` and
-``ROOT/test_targets_bop19.json``. All values returned are in metres (see :mod:`cosy_lite.bop.io`).
+``ROOT/test_targets_bop19.json`` (+ ``test_targets_bop24.json``). All values returned are in metres (see :mod:`cosy_lite.bop.io`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Iterator
 import numpy as np
 
 from cosy_lite.bop import io
-from cosy_lite.bop.params import DatasetParams, SplitParams, get_dataset_params
+from cosy_lite.bop.params import DatasetParams, SplitParams, dataset_name_of, get_dataset_params
 from cosy_lite.errors import BopFormatError
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -49,8 +49,7 @@ class BopDataset:
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
-        if not self.name:
-            self.name = self.root.name
+        self.name = dataset_name_of(self.root, self.name)
         if not self.root.is_dir():
             raise BopFormatError(self.root, "", "dataset folder not found")
 
@@ -190,3 +189,11 @@ class BopDataset:
 
     def test_targets(self) -> list[io.Target]:
         return io.load_test_targets(self.test_targets_path, set(self.obj_ids))
+
+    @property
+    def test_targets_bop24_path(self) -> Path:
+        return self.root / "test_targets_bop24.json"
+
+    def test_image_targets(self) -> list[io.ImageTarget]:
+        """The images of ``test_targets_bop24.json`` (BOP 2024/2025 6D detection), in file order."""
+        return io.load_image_targets(self.test_targets_bop24_path)

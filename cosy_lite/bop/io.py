@@ -84,6 +84,14 @@ class Target:
     inst_count: int
 
 
+@dataclass(frozen=True)
+class ImageTarget:
+    """One entry of ``test_targets_bop24.json`` (6D detection: an image, no object or instance count)."""
+
+    scene_id: int
+    im_id: int
+
+
 # ----------------------------------------------------------------------------- json helpers
 
 
@@ -338,6 +346,52 @@ def load_scene_camera(path: str | Path) -> dict[int, CameraRecord]:
     return out
 
 
+@dataclass
+class CameraFile:
+    """Intrinsics of one camera read by :func:`load_camera_file`."""
+
+    K: np.ndarray  # [3,3] px
+    size: tuple[int, int] | None = None  # (width, height) px, if the file states it
+    depth_scale: float | None = None  # depth image value * depth_scale = mm, if the file states it
+
+
+def load_camera_file(path: str | Path) -> CameraFile:
+    """One camera's intrinsics from JSON: a BOP ``camera.json`` (``fx, fy, cx, cy`` [, ``width, height,
+    depth_scale``]), a ``scene_camera.json`` entry (``cam_K`` row-major [, ``depth_scale``]) or ``{"K":
+    [[..], [..], [..]]}``. Anything else raises BopFormatError naming the file and field."""
+    path = Path(path)
+    d = load_json(path)
+    if not isinstance(d, dict):
+        raise BopFormatError(path, "", "expected a JSON object with fx, fy, cx, cy (BOP camera.json), cam_K or K")
+    if "cam_K" in d or "K" in d:
+        fld = "cam_K" if "cam_K" in d else "K"
+        K = _numbers(path, fld, d[fld], 9).reshape(3, 3)
+        if abs(K[2, 2] - 1) > 1e-6 or np.any(K[2, :2] != 0) or K[1, 0] != 0:
+            raise BopFormatError(path, fld, f"not an intrinsic matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: {K.tolist()}")
+    else:
+        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in d]
+        if missing:
+            raise BopFormatError(path, missing[0], "missing field (expected fx, fy, cx, cy as in BOP camera.json, "
+                                 "or cam_K / K)")
+        fx, fy, cx, cy = (float(_numbers(path, k, d[k], 1)[0]) for k in ("fx", "fy", "cx", "cy"))
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        fld = "fx"
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise BopFormatError(path, fld, f"focal lengths must be > 0 px, got fx = {K[0, 0]}, fy = {K[1, 1]}")
+    size = None
+    if "width" in d or "height" in d:
+        w, h = (_numbers(path, k, _get(path, d, k, ""), 1)[0] for k in ("width", "height"))
+        if w <= 0 or h <= 0 or w != int(w) or h != int(h):
+            raise BopFormatError(path, "width", f"image size must be positive integers, got {w} x {h}")
+        size = (int(w), int(h))
+    depth_scale = None
+    if "depth_scale" in d:
+        depth_scale = float(_numbers(path, "depth_scale", d["depth_scale"], 1)[0])
+        if depth_scale <= 0:
+            raise BopFormatError(path, "depth_scale", f"must be > 0 (depth value * depth_scale = mm), got {depth_scale}")
+    return CameraFile(K, size, depth_scale)
+
+
 def scene_camera_to_json(cams: dict[int, CameraRecord]) -> dict[str, Any]:
     out = {}
     for im_id in sorted(cams):
@@ -451,6 +505,29 @@ def load_test_targets(path: str | Path, valid_obj_ids: set[int] | None = None) -
         vals["obj_id"] = _check_obj_id(path, f"{where}.obj_id", _get(path, d, "obj_id", where), valid_obj_ids)
         out.append(Target(**vals))
     return out
+
+
+def load_image_targets(path: str | Path) -> list[ImageTarget]:
+    """``test_targets_bop24.json``: a JSON list of ``{"im_id", "scene_id"}`` (other keys are ignored, as
+    the toolkit does: e.g. a BOP19-style ``obj_id``/``inst_count``). Bad entries raise BopFormatError."""
+    path = Path(path)
+    raw = load_json(path)
+    if not isinstance(raw, list):
+        raise BopFormatError(path, "", "expected a JSON list of {im_id, scene_id}")
+    out = []
+    for i, d in enumerate(raw):
+        vals = {}
+        for fld in ("scene_id", "im_id"):
+            v = _get(path, d, fld, f"[{i}]")
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise BopFormatError(path, f"[{i}].{fld}", f"expected a non-negative integer, got {v!r}")
+            vals[fld] = v
+        out.append(ImageTarget(**vals))
+    return out
+
+
+def image_targets_to_json(targets: list[ImageTarget]) -> list[dict[str, int]]:
+    return [{"im_id": t.im_id, "scene_id": t.scene_id} for t in targets]
 
 
 def targets_to_json(targets: list[Target]) -> list[dict[str, int]]:

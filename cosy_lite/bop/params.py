@@ -7,7 +7,9 @@ paper. Depth ranges are in millimetres, as the toolkit states them (the BOP boun
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 
 @dataclass(frozen=True)
@@ -105,7 +107,7 @@ DATASETS: dict[str, DatasetParams] = {
         ),
         # The embedded synthetic datasets written by cosy_lite.synth (YCB-V ids, YCB-V camera).
         DatasetParams(
-            "ycbv-synth", tuple(range(1, 22)), {"train_pbr": _PBR_JPG, "test": _VGA}, "test",
+            "ycbvsynth", tuple(range(1, 22)), {"train_pbr": _PBR_JPG, "test": _VGA}, "test",
             depth_range_mm=(400.0, 1300.0), azimuth_range=(0, 2 * math.pi),
             elev_range=(0.35, 1.45),
         ),
@@ -119,6 +121,35 @@ DATASETS: dict[str, DatasetParams] = {
 
 BOP_CORE = ("lmo", "tless", "tudl", "icbin", "itodd", "hb", "ycbv")
 
+# Old name -> new name. The BOP toolkit reads results files ``METHOD_DATASET-SPLIT[-SPLITTYPE].csv``
+# by splitting on ``_`` and ``-``, so a dataset name must contain neither.
+RENAMED_DATASETS: dict[str, str] = {"ycbv-synth": "ycbvsynth"}
+
+
+def renamed_dataset_message(old: str, folder: object | None = None) -> str:
+    """Why ``old`` is no longer a dataset name and what to use instead (``folder``: an old folder on disk)."""
+    new = RENAMED_DATASETS[old]
+    msg = (f"dataset {old!r} is now called {new!r} (the BOP toolkit splits results file names "
+           f"METHOD_DATASET-SPLIT.csv on '_' and '-', so it cannot score results of {old!r})")
+    if folder is not None:
+        msg += f"; rename the folder: mv {folder} {Path(str(folder)).with_name(new)}"
+    return msg
+
+
+def current_dataset_name(name: str, folder: object | None = None, warn: bool = True) -> str:
+    """``name``, or its new name (with a warning naming ``folder``, if ``warn``) if it is an old one of
+    :data:`RENAMED_DATASETS`."""
+    if name not in RENAMED_DATASETS:
+        return name
+    if warn:
+        warnings.warn(renamed_dataset_message(name, folder) + f"; read as {RENAMED_DATASETS[name]!r}", stacklevel=3)
+    return RENAMED_DATASETS[name]
+
+
+def dataset_name_of(root: str | Path, name: str | None = None, warn: bool = True) -> str:
+    """The dataset name of folder ``root``: ``name`` if given, else the folder name (old names mapped to new ones)."""
+    return current_dataset_name(name or Path(root).name, None if name else root, warn)
+
 
 def register_dataset(params: DatasetParams) -> None:
     """Add (or replace) a row, e.g. for a synthetic dataset written by ``cosy_lite.synth``."""
@@ -130,4 +161,6 @@ def get_dataset_params(name: str) -> DatasetParams:
     try:
         return DATASETS[name]
     except KeyError:
+        if name in RENAMED_DATASETS:
+            raise KeyError(renamed_dataset_message(name)) from None
         raise KeyError(f"unknown BOP dataset {name!r}; known: {sorted(DATASETS)}") from None

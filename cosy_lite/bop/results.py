@@ -1,5 +1,8 @@
 """BOP19 results CSV: ``METHOD_DATASET-SPLIT.csv`` with one pose estimate per line.
 
+File names are read as the BOP toolkit reads them (split on ``_`` and ``-``), so no part may
+contain the separators of another.
+
 This is the BOP boundary: poses are in metres inside the library and in millimetres in the
 file. Format as written and read by the BOP toolkit (``inout.save_bop_results`` /
 ``load_bop_results``)::
@@ -55,36 +58,100 @@ class ResultRow(NamedTuple):
 
 
 def results_filename(method: str, dataset: str, split: str) -> str:
-    """``METHOD_DATASET-SPLIT.csv``. ValueError if a part is empty or contains ``_`` (BOP rule)."""
+    """``METHOD_DATASET-SPLIT.csv``. ValueError if a part is empty or contains ``_`` (BOP rule), or the
+    dataset contains ``-`` (the toolkit would read its first part as the dataset)."""
     for what, value in (("method", method), ("dataset", dataset), ("split", split)):
-        if not value or "_" in value or "/" in value:
+        if not value or "_" in value or "/" in value or "." in value or (what == "dataset" and "-" in value):
             raise ValueError(
-                f"{what} {value!r}: must be non-empty without '_' or '/' "
-                "(BOP results are named METHOD_DATASET-SPLIT.csv; write e.g. train_pbr as train-pbr)"
+                f"{what} {value!r}: must be non-empty without '_', '/' or '.'"
+                + (" or '-'" if what == "dataset" else "")
+                + " (BOP results are named METHOD_DATASET-SPLIT.csv; write e.g. train_pbr as train-pbr)"
             )
     return f"{method}_{dataset}-{split}.csv"
 
 
-def parse_results_filename(path: str | Path) -> tuple[str, str, str]:
-    """``.../METHOD_DATASET-SPLIT.csv`` -> (method, dataset, split).
+class ToolkitFileName(NamedTuple):
+    """A results file name as bop_toolkit ``inout.parse_result_filename`` reads it."""
 
-    A dataset name of the parameter table that contains ``-`` (e.g. ``ycbv-synth``) is matched as
-    a whole; otherwise the dataset ends at the first ``-``. Raises BopFormatError (field
-    ``file name``) when the name does not follow the pattern.
+    result_name: str
+    method: str
+    dataset: str
+    split: str
+    split_type: str | None
+    ext: str
+
+
+def toolkit_parse_results_filename(path: str | Path) -> ToolkitFileName:
+    """Read a results file name with the BOP toolkit's rule, nothing more.
+
+    The base name is split on ``.``: the first part is the result name, the rest the extension.
+    The result name is split on ``_``: part 0 is the method, part 1 is split on ``-`` into dataset,
+    split and (if present) split type; further ``_`` parts (an optional id) and ``-`` parts are
+    ignored. Raises BopFormatError (field ``file name``) where the toolkit fails (a part missing).
     """
     path = Path(path)
-    expected = "expected METHOD_DATASET-SPLIT.csv with no '_' in METHOD (e.g. cosylite_ycbv-test.csv)"
+    result_name, _, ext = path.name.partition(".")
+    info = result_name.split("_")
+    dataset_info = info[1].split("-") if len(info) > 1 else []
+    if len(dataset_info) < 2:
+        raise BopFormatError(path, "file name", (
+            f"{path.name!r}: the BOP toolkit cannot read it (it needs METHOD_DATASET-SPLIT[-SPLITTYPE].csv)"))
+    split_type = dataset_info[2] if len(dataset_info) > 2 else None
+    return ToolkitFileName(result_name, info[0], dataset_info[0], dataset_info[1], split_type, ext)
+
+
+def parse_results_filename(path: str | Path) -> tuple[str, str, str]:
+    """``.../METHOD_DATASET-SPLIT[-SPLITTYPE].csv`` -> (method, dataset, split), as the BOP toolkit reads it.
+
+    ``split`` is ``SPLIT-SPLITTYPE`` when there is a split type (e.g. ``test-primesense``). Stricter
+    than the toolkit: exactly one ``_``, no ``.`` before ``.csv``, at most three ``-`` parts and none
+    empty (what the toolkit would ignore or misread). Raises BopFormatError (field ``file name``).
+    """
+    path = Path(path)
+    expected = "expected METHOD_DATASET-SPLIT.csv with no '_' in METHOD and no '-' in DATASET (e.g. cosylite_ycbv-test.csv)"
     if path.suffix != ".csv":
         raise BopFormatError(path, "file name", f"{path.name!r} does not end with .csv; {expected}")
+    if "." in path.stem:
+        raise BopFormatError(path, "file name", f"{path.name!r}: the BOP toolkit ends the name at the first '.'; {expected}")
     parts = path.stem.split("_")
     if len(parts) != 2 or not all(parts):
-        raise BopFormatError(path, "file name", f"{path.name!r} needs exactly one '_'; {expected}")
-    method, rest = parts
-    known = sorted((n for n in DATASETS if rest.startswith(n + "-")), key=len, reverse=True)
-    dataset, _, split = rest.partition("-") if not known else (known[0], "-", rest[len(known[0]) + 1:])
-    if not dataset or not split:
+        try:
+            t = toolkit_parse_results_filename(path)
+            reading = (f"the BOP toolkit would read method {t.method!r}, dataset {t.dataset!r}, split {t.split!r}"
+                       + (f", split type {t.split_type!r}" if t.split_type else ""))
+        except BopFormatError:
+            reading = "the BOP toolkit cannot read it"
+        raise BopFormatError(path, "file name", f"{path.name!r} needs exactly one '_' ({reading}); {expected}")
+    dataset_info = parts[1].split("-")
+    if len(dataset_info) < 2 or not all(dataset_info):
         raise BopFormatError(path, "file name", f"{path.name!r} has no DATASET-SPLIT part; {expected}")
-    return method, dataset, split
+    if len(dataset_info) > 3:
+        raise BopFormatError(path, "file name", (
+            f"{path.name!r}: the BOP toolkit reads only DATASET-SPLIT-SPLITTYPE and would ignore "
+            f"{'-'.join(dataset_info[3:])!r}; {expected}"))
+    name = toolkit_parse_results_filename(path)
+    return name.method, name.dataset, "-".join(dataset_info[1:])
+
+
+def misread_dataset(path: str | Path, names: Iterable[str] = ()) -> str | None:
+    """Why the toolkit would misread the dataset of a results file name (None: it reads it right).
+
+    That is the case when ``DATASET-SPLIT`` starts with a dataset name containing ``-``: an old
+    name of :data:`~cosy_lite.bop.params.RENAMED_DATASETS`, a row of the table, or one of ``names``
+    (e.g. the dataset folder's name).
+    """
+    from cosy_lite.bop.params import RENAMED_DATASETS
+
+    path = Path(path)
+    rest = path.stem.partition("_")[2]
+    for name in sorted({*RENAMED_DATASETS, *DATASETS, *names}, key=len, reverse=True):
+        if "-" in name and rest.startswith(name + "-"):
+            t = toolkit_parse_results_filename(path)
+            fix = RENAMED_DATASETS.get(name, name.replace("-", ""))
+            return (f"{path.name!r} is for dataset {name!r}, but the BOP toolkit splits the name on '_' and '-' and "
+                    f"reads dataset {t.dataset!r}, split {t.split!r}, split type {t.split_type!r}; "
+                    f"name it {t.method}_{fix}-{rest[len(name) + 1:]}.csv (dataset {fix!r})")
+    return None
 
 
 # ----------------------------------------------------------------------------- writing
@@ -130,6 +197,14 @@ def format_estimate(e: PoseEstimate) -> str:
     R = " ".join(_fmt(v) for v in TCO[:3, :3].reshape(-1))
     t = " ".join(_fmt(v * 1000.0) for v in TCO[:3, 3])
     return f"{int(e.scene_id)},{int(e.im_id)},{int(e.obj_id)},{_fmt(e.score)},{R},{t},{_fmt(e.time)}"
+
+
+def estimate_to_json(e: PoseEstimate) -> dict:
+    """One estimate as JSON-ready numbers at the BOP boundary: ``obj_id``, ``score``, ``R`` [3][3]
+    (row-major rows), ``t`` [3] in mm, ``time`` (s), and ``bop19_csv_row`` (its line of a results file)."""
+    TCO = np.asarray(e.TCO, dtype=np.float64)
+    return {"obj_id": int(e.obj_id), "score": float(e.score), "R": TCO[:3, :3].tolist(),
+            "t": [float(v * 1000.0) for v in TCO[:3, 3]], "time": float(e.time), "bop19_csv_row": format_estimate(e)}
 
 
 def write_results_csv(path: str | Path, estimates: Iterable[PoseEstimate]) -> None:

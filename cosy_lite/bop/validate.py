@@ -18,8 +18,10 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import IMAGE_EXTS
-from cosy_lite.bop.params import DATASETS, DatasetParams, SplitParams
-from cosy_lite.bop.results import ResultRow, format_estimate, parse_results_csv, parse_results_filename
+from cosy_lite.bop.params import (DATASETS, RENAMED_DATASETS, DatasetParams, SplitParams, dataset_name_of,
+                                  renamed_dataset_message)
+from cosy_lite.bop.results import (ResultRow, format_estimate, misread_dataset, parse_results_csv,
+                                   parse_results_filename)
 from cosy_lite.errors import BopFormatError
 
 Severity = Literal["error", "warning"]
@@ -28,6 +30,7 @@ MODEL_DIRS = ("models", "models_eval")
 SCENE_FILES = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
 MASK_DIRS = ("mask", "mask_visib")
 TARGETS_FILE = "test_targets_bop19.json"
+TARGETS_BOP24_FILE = "test_targets_bop24.json"  # 6D detection: images only
 UNIT_MIXUP_RATIO = 30.0  # model extent and diameter further apart than this: mm/m mix-up (~1000x)
 DIAMETER_TOL = 0.05  # relative slack when comparing a diameter with the model's bounding box
 MAX_LISTED = 10  # ids listed in one message
@@ -381,6 +384,32 @@ def _check_targets(
                 ))
 
 
+def _check_image_targets(root: Path, params: DatasetParams | None, index: dict[str, dict[int, _SceneIndex]],
+                         out: _Collector) -> None:
+    """``test_targets_bop24.json`` (6D detection), if present: every entry an image of the test split, no repeats."""
+    path = root / TARGETS_BOP24_FILE
+    if not path.is_file():
+        return
+    targets = out.load(io.load_image_targets, path)
+    if targets is None:
+        return
+    split = _test_split(root, params)
+    split_dir = root / split
+    scenes = index[split] if split in index else _index_split_quietly(split_dir) if split_dir.is_dir() else None
+    if scenes is None:
+        out.error(path, "", f"the test split folder {split_dir} the targets refer to does not exist")
+        return
+    seen: dict[tuple[int, int], int] = {}
+    for i, t in enumerate(targets):
+        if (j := seen.setdefault((t.scene_id, t.im_id), i)) != i:
+            out.warning(path, f"[{i}]", f"same scene_id/im_id as target [{j}] (the toolkit keeps one)")
+        scene_dir = split_dir / f"{t.scene_id:06d}"
+        if (sc := scenes.get(t.scene_id)) is None:
+            out.error(path, f"[{i}].scene_id", f"scene {t.scene_id} not found: no folder {scene_dir}")
+        elif sc.im_ids is not None and t.im_id not in sc.im_ids:
+            out.error(path, f"[{i}].im_id", f"image {t.im_id} not in {scene_dir / 'scene_camera.json'}")
+
+
 def check_dataset(
     root: str | Path, name: str | None = None, splits: list[str] | None = None, check_images: bool = True,
 ) -> list[Problem]:
@@ -395,9 +424,11 @@ def check_dataset(
     from tqdm import tqdm
 
     root = Path(root)
-    name = name or root.name
-    params = DATASETS.get(name)
     out = _Collector()
+    if not name and root.name in RENAMED_DATASETS:  # reported here, not as a Python warning
+        out.warning(root, "name", renamed_dataset_message(root.name, root) + f"; read as {RENAMED_DATASETS[root.name]!r}")
+    name = dataset_name_of(root, name, warn=False)
+    params = DATASETS.get(name)
     if not root.is_dir():
         out.error(root, "", "dataset folder not found")
         return out.items
@@ -425,6 +456,7 @@ def check_dataset(
             for d in tqdm(scene_dirs, desc=f"check {split}", unit="scene", disable=None)
         }
     _check_targets(root, params, obj_ids, index, out)
+    _check_image_targets(root, params, index, out)
     return out.items
 
 
@@ -497,14 +529,22 @@ def check_results(
     except BopFormatError as e:
         out.items.append(Problem.from_error(e))
         file_dataset = file_split = None
+    given = [n for n in (name, dataset_name_of(dataset_root) if dataset_root is not None else None) if n]
+    if file_dataset is not None and (why := misread_dataset(path, given)) is not None:
+        out.error(path, "file name", why)
+        file_dataset = file_split = None  # what the toolkit reads is not what the file is for
+    if name and ("-" in name or "_" in name):
+        out.error(path, "file name", f"dataset name {name!r} contains '-' or '_': the BOP toolkit cannot read "
+                  "results file names METHOD_DATASET-SPLIT.csv of such a dataset")
     if file_dataset is not None and name and name != file_dataset:
         out.error(path, "file name", f"results for dataset {file_dataset!r}, expected {name!r}")
     if file_split is not None and split and split != file_split:
         out.error(path, "file name", f"results for split {file_split!r}, expected {split!r}")
     root = Path(dataset_root) if dataset_root is not None else None
     if root is not None and not name:
-        name = file_dataset or root.name
-        if file_dataset is not None and file_dataset != root.name:
+        folder_name = dataset_name_of(root)
+        name = file_dataset or folder_name
+        if file_dataset is not None and file_dataset != folder_name:
             out.warning(path, "file name", f"dataset {file_dataset!r} of the file name differs from the folder name of {root}")
 
     rows = []
@@ -530,5 +570,5 @@ def check_results(
         if (n0 := first.setdefault(format_estimate(row.estimate), row.line)) != row.line:
             out.warning(path, f"line {row.line}: row", f"identical to line {n0}")
     if root is not None:
-        _check_result_ids(path, root, name or root.name, split or file_split, rows, out)
+        _check_result_ids(path, root, name or dataset_name_of(root), split or file_split, rows, out)
     return out.items

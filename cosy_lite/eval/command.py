@@ -1,4 +1,5 @@
-"""``cosy-lite eval``: validate a BOP19 results CSV, score it (VSD, MSSD, MSPD, AR), write JSON + PNG."""
+"""``cosy-lite eval``: validate a BOP19 results CSV, score it (VSD, MSSD, MSPD, AR), write JSON + PNG;
+``--task 6d-detection``: the BOP 2024/2025 mAP instead (:mod:`cosy_lite.eval.pose_detection`)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--visib-gt-min", type=float, default=-1.0,
                    help="GT instances with visib_fract >= this are targets; -1 (default, the toolkit's BOP19 "
                         "setting): the inst_count most visible instances of each target")
+    p.add_argument("--task", default="6d-localization", choices=["6d-localization", "6d-detection"],
+                   help="6d-localization: BOP19 AR (VSD, MSSD, MSPD) over test_targets_bop19.json; 6d-detection: "
+                        "BOP 2024/2025 mAP (MSSD, MSPD; bop24_mAP, bop25_mAP) over test_targets_bop24.json")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -96,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     """Check the options, the results file and the dataset (every problem reported, nothing scored
     on bad input), then score and write ``scores.json`` + ``recall_curves.png``."""
     from cosy_lite.bop.command_check_results import resolve_dataset
+    from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report
     from cosy_lite.eval.evaluator import eval_split, evaluate
@@ -103,18 +108,22 @@ def run(args: argparse.Namespace) -> int:
     if problem := _argument_problem(args):
         print(f"error: {problem}", file=sys.stderr)
         return 2
+    task = getattr(args, "task", "6d-localization")  # (namespaces built in code before the option existed)
     root = resolve_dataset(args.dataset)
     problems = check_results(args.results, root, args.name, args.split)
     if root.is_dir():  # (a missing folder is reported by check_results)
-        split = eval_split(args.name or root.name, args.split)
+        split = eval_split(dataset_name_of(root, args.name), args.split)
         problems += check_dataset(root, args.name, splits=[split])
-        if not (root / TARGETS_FILE).is_file():
-            problems.append(Problem(str(root / TARGETS_FILE), "", "file not found: the BOP19 evaluation scores "
+        targets = TARGETS_FILE if task == "6d-localization" else "test_targets_bop24.json"
+        if not (root / targets).is_file():
+            problems.append(Problem(str(root / targets), "", f"file not found: the {task} evaluation scores "
                                     "the targets it lists"))
     if any(p.severity == "error" for p in problems):
         return report(problems, f"{args.results} on {root}")
     for p in problems:
         print(p)
+    if task == "6d-detection":
+        return _run_6d_detection(args, root)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress)
     print(format_table(result))
@@ -122,4 +131,18 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")
     plot_curves(result, out / "recall_curves.png")
     print(f"wrote {out / 'scores.json'} and {out / 'recall_curves.png'}")
+    return 0
+
+
+def _run_6d_detection(args: argparse.Namespace, root: Path) -> int:
+    """Score the 6D detection task and write ``scores_bop24.json`` (the toolkit's keys)."""
+    from cosy_lite.bop.io import atomic_write_text
+    from cosy_lite.eval.pose_detection import evaluate_6d_detection, format_table as format_6d
+
+    result = evaluate_6d_detection(root, args.results, args.split, args.name, args.max_sym_disc_step,
+                                   progress=not args.no_progress)
+    print(format_6d(result))
+    out = args.out or args.results.with_name(args.results.stem + "_eval")
+    atomic_write_text(out / "scores_bop24.json", json.dumps(result.to_dict(), indent=1) + "\n")
+    print(f"wrote {out / 'scores_bop24.json'}")
     return 0

@@ -58,13 +58,20 @@ def distance_map(depth: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray
     return np.sqrt((xs[None, :] * d) ** 2 + (ys[:, None] * d) ** 2 + d**2)
 
 
+def mssd_mspd_errors(obj: ObjectErrors, T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MSSD [E] (m) and MSPD [E] (px) of estimates ``T_est`` [E,4,4] against one GT pose, as the toolkit's
+    ``eval_calc_errors.py``: MSSD is +inf where the bounding spheres do not overlap (``||t_e - t_g|| >= diameter``)."""
+    near = np.linalg.norm(T_est[:, :3, 3] - T_gt[:3, 3], axis=1) < obj.diameter
+    mssd, mspd = obj.mssd_mspd(T_est, T_gt, K)
+    mssd = np.where(near, mssd, np.inf)
+    return mssd, mspd
+
+
 def _model_errors(obj: ObjectErrors, T_est: np.ndarray, gt_TCO: list[np.ndarray], K: np.ndarray,
                   out: PairErrors) -> None:
     """Fill ``out.mssd``, ``mspd``, ``add``, ``adi`` (in place) of estimates ``T_est`` [E,4,4] x ``gt_TCO`` (G)."""
     for g, T_gt in enumerate(gt_TCO):
-        near = np.linalg.norm(T_est[:, :3, 3] - T_gt[:3, 3], axis=1) < obj.diameter  # bounding spheres overlap
-        out.mssd[:, g], out.mspd[:, g] = obj.mssd_mspd(T_est, T_gt, K)
-        out.mssd[~near, g] = np.inf
+        out.mssd[:, g], out.mspd[:, g] = mssd_mspd_errors(obj, T_est, T_gt, K)
         out.add[:, g] = obj.add(T_est, T_gt)
         out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
 

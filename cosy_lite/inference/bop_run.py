@@ -1,5 +1,7 @@
 """Run a :class:`~cosy_lite.inference.predictor.Predictor` over a BOP test split and write the
-BOP19 submission ``METHOD_DATASET-SPLIT.csv`` (ViVo task), overlays, and the checker's verdict.
+BOP19-format submission ``METHOD_DATASET-SPLIT.csv`` (ViVo task, or the BOP 2024/2025 6D detection
+task: every detection of the images of ``test_targets_bop24.json``, no instance counts), overlays,
+and the checker's verdict.
 
 Per target image of ``test_targets_bop19.json``: read the image (and depth when ICP is on) ->
 detections (the detector, the ground truth ("oracle"), or a BOP22 detections JSON file) -> per
@@ -18,6 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
 from cosy_lite.bop.dataset import BopDataset, ImageRecord
 from cosy_lite.bop.detections import (MIN_BOX_SIZE_PX, Detections, degenerate_boxes, oracle_detections,
@@ -29,6 +32,8 @@ from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, SetupError
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
 
 ORACLE = "oracle"
+TASKS = ("6d-localization", "6d-detection")  # BOP19 ViVo (test_targets_bop19.json) | BOP24 (test_targets_bop24.json)
+MAX_DETECTIONS_6D = 100  # the BOP24 evaluation keeps the 100 best estimates per image
 ORACLE_MIN_VISIB_FRACT = 0.1  # as the BOP19 targets: instances at least 10 % visible
 DetectionSource = Callable[[ImageRecord], Detections]
 
@@ -160,26 +165,50 @@ def check_coverage(predictor: Predictor, targets_path: Path, target_obj_ids: set
                              f"asks for {missing} too")
 
 
+def select_top_detections(detections: Detections, obj_ids: set[int], n: int = MAX_DETECTIONS_6D) -> Detections:
+    """The ``n`` highest-scoring detections of objects in ``obj_ids`` (6D detection: no instance counts),
+    by decreasing score (ties: input order)."""
+    known = torch.tensor([int(o) in obj_ids for o in detections.obj_ids.tolist()], dtype=torch.bool)
+    det = detections.select(torch.nonzero(known).reshape(-1))
+    order = torch.argsort(det.scores, descending=True, stable=True)[:n]
+    return det.select(order)
+
+
+def _image_targets(dataset: BopDataset, task: str, predictor: Predictor, detector_path: Path | None):
+    """(image keys, per image a function Detections -> the detections to estimate) for ``task``."""
+    if task == "6d-detection":
+        known = set(predictor.obj_ids)
+        keys = list(dict.fromkeys((t.scene_id, t.im_id) for t in dataset.test_image_targets()))
+        return keys, {k: (lambda det: select_top_detections(det, known)) for k in keys}
+    per_image = targets_by_image(dataset.test_targets())
+    check_coverage(predictor, dataset.test_targets_path, {o for c in per_image.values() for o in c}, detector_path)
+    return list(per_image), {k: (lambda det, c=c: select_top_instances(det, c)) for k, c in per_image.items()}
+
+
 def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path, split: str = "test",
                  method: str = "cosylite", detections: str | Path | None = None, n_vis: int = 0,
                  limit_images: int | None = None, progress: bool = True,
-                 detector_path: Path | None = None) -> RunSummary:
-    """Estimate the poses of the ViVo targets of ``split`` and write ``out_dir/METHOD_DATASET-SPLIT.csv``.
+                 detector_path: Path | None = None, task: str = "6d-localization") -> RunSummary:
+    """Estimate the poses of the targets of ``split`` and write ``out_dir/METHOD_DATASET-SPLIT.csv``.
 
     Args:
         detections: None (the predictor's detector), "oracle", or a BOP22 detections JSON file.
         n_vis: overlays written for the first ``n_vis`` images (``out_dir/vis/``).
         limit_images: only the first target images.
+        task: "6d-localization" (BOP19 ViVo: per image and object its ``inst_count`` best detections)
+            or "6d-detection" (BOP 2024/2025: the images of ``test_targets_bop24.json``, every detection
+            of a known object, at most the 100 best per image).
     """
     from tqdm import tqdm
 
+    if task not in TASKS:
+        raise ValueError(f"task {task!r}: expected one of {list(TASKS)}")
     out_dir = Path(out_dir)
     csv_path = out_dir / results_filename(method, dataset.name, split)
     split_dir = resolve_split_folder(dataset.root, split, None)
     split_folder = split_dir.name if split_dir is not None else split
-    per_image = targets_by_image(dataset.test_targets())
-    check_coverage(predictor, dataset.test_targets_path, {o for c in per_image.values() for o in c}, detector_path)
-    keys = list(per_image)[:limit_images] if limit_images is not None else list(per_image)
+    image_keys, choose = _image_targets(dataset, task, predictor, detector_path)
+    keys = image_keys[:limit_images] if limit_images is not None else image_keys
     source = detection_source(detections, dataset, with_masks=predictor.icp)
     if source is None and predictor.detector is None:
         raise SetupError("no detections: load a detector checkpoint or give detections ('oracle' or a JSON file)")
@@ -205,7 +234,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         det = given if given is not None else predictor.detect(rgb)
         bad = degenerate_boxes(det)
         summary.n_degenerate += int(bad.sum())
-        det = select_top_instances(det.select(~bad), per_image[(scene_id, im_id)])
+        det = choose[(scene_id, im_id)](det.select(~bad))
         est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
         t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
         summary.image_times.append(t_image)

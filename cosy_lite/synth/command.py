@@ -4,20 +4,48 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, default=None,
-                   help="YAML with differences from the defaults (default dataset ycbv-synth); e.g. configs/synth/tiny.yaml")
+                   help="YAML with differences from the defaults (default dataset ycbvsynth); e.g. configs/synth/tiny.yaml")
     p.add_argument("--out", type=Path, default=None, help="dataset folder (default: $COSY_LITE_DATA or ./data, / NAME)")
     p.add_argument("--splits", nargs="+", default=["train_pbr", "test"], choices=["train_pbr", "test"])
     p.add_argument("--workers", type=int, default=None, help="processes rendering layouts in parallel")
+    p.add_argument("--models", type=Path, default=None, metavar="DIR",
+                   help="your own objects: a folder of meshes (PLY/OBJ/glTF/GLB/STL), one object per file (needs --units)")
+    p.add_argument("--units", choices=["mm", "m"], default=None, help="unit of the --models meshes")
     p.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. train.n_images=200 seed=3")
 
 
 def default_data_root() -> Path:
     return Path(os.environ.get("COSY_LITE_DATA", "data"))
+
+
+def dataset_folder(dataset: str, data_root: Path | None = None) -> Path:
+    """The folder of a ``--dataset`` value: a folder as given, else ``DATA_ROOT/NAME``.
+
+    An old name of :data:`~cosy_lite.bop.params.RENAMED_DATASETS` (e.g. ``ycbv-synth``) gives its new
+    name's folder when that exists; else its old folder when that exists (read under the new name,
+    with a warning to rename it); else a BopFormatError naming the new name.
+    """
+    from cosy_lite.bop.params import RENAMED_DATASETS, renamed_dataset_message
+    from cosy_lite.errors import BopFormatError
+
+    if Path(dataset).is_dir():
+        return Path(dataset)
+    root = (data_root or default_data_root()) / dataset
+    if dataset not in RENAMED_DATASETS:
+        return root
+    new_root = root.with_name(RENAMED_DATASETS[dataset])
+    if new_root.is_dir():
+        print(f"note: {renamed_dataset_message(dataset)}: using {new_root}", file=sys.stderr)
+        return new_root
+    if root.is_dir():
+        return root  # BopDataset warns and reads it under the new name
+    raise BopFormatError(root, "--dataset", renamed_dataset_message(dataset) + f": use --dataset {RENAMED_DATASETS[dataset]}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,7 +55,20 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(SynthConfig, args.config, args.overrides)
     if args.workers is not None:
         cfg.workers = args.workers
+    if (args.models is None) != (args.units is None):
+        print("error: --models DIR and --units mm|m go together (the unit of the meshes is not guessed)", file=sys.stderr)
+        return 2
+    if args.models is not None:
+        if args.out is None:
+            print("error: --models needs --out DIR (the dataset folder; its name is the dataset's name)", file=sys.stderr)
+            return 2
+        cfg.models_dir, cfg.models_units, cfg.name = str(args.models), args.units, args.out.name
     out = args.out or default_data_root() / cfg.name
+    if "-" in out.name or "_" in out.name:
+        print(f"error: dataset folder name {out.name!r} contains '-' or '_': the BOP toolkit splits results file "
+              f"names METHOD_DATASET-SPLIT.csv on them; name it e.g. {out.name.replace('-', '').replace('_', '')!r}",
+              file=sys.stderr)
+        return 2
     stats = generate(cfg, out, tuple(args.splits))
     rate = stats["images"] / stats["seconds"] if stats["images"] else 0.0
     print(f"{out}: {stats['images']} new images in {stats['seconds']:.1f} s ({rate:.2f} img/s)")

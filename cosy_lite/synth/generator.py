@@ -3,7 +3,8 @@
 Per layout: a random subset of the dataset's objects plus distractors is dropped into a box and
 settled by MuJoCo; the room gets random textures, lights and materials; ``views_per_layout``
 cameras look at objects near the centre. Output in the BOP layout, ``train_pbr`` in chunks of
-``chunk_size`` images, ``test`` one scene per layout, plus ``test_targets_bop19.json``.
+``chunk_size`` images, ``test`` one scene per layout, plus ``test_targets_bop19.json`` and
+``test_targets_bop24.json``.
 
 Deterministic per seed: each layout draws from its own ``SeedSequence((seed, split, layout))``,
 so the worker count does not change the result. Resumable: finished chunks are skipped.
@@ -38,9 +39,9 @@ class SplitConfig:
 
 @dataclass
 class SynthConfig:
-    """What to generate. Defaults = the default dataset ``ycbv-synth``."""
+    """What to generate. Defaults = the default dataset ``ycbvsynth``."""
 
-    name: str = "ycbv-synth"
+    name: str = "ycbvsynth"
     obj_ids: list[int] = field(default_factory=lambda: list(range(1, 22)))
     seed: int = 0
     train: SplitConfig = field(default_factory=lambda: SplitConfig(n_images=1000, views_per_layout=25, rgb_ext=".jpg"))
@@ -53,6 +54,8 @@ class SynthConfig:
     min_visib_fract_target: float = 0.1  # BOP19 test targets
     visib_delta: float = 0.015  # metres
     workers: int = 1
+    models_dir: str | None = None  # your own meshes instead of the YCB-V library (cosy_lite.synth.custom_objects)
+    models_units: str = "mm"  # of the meshes in models_dir: mm or m (checked for plausibility)
     layout: LayoutConfig = field(default_factory=LayoutConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
@@ -186,7 +189,8 @@ def write_camera_json(root: Path, cfg: SynthConfig) -> None:
 
 
 def write_test_targets(root: Path, cfg: SynthConfig) -> list[io.Target]:
-    """Instances with visib_fract >= min_visib_fract_target, counted per (scene, image, object)."""
+    """BOP19 targets: instances with visib_fract >= min_visib_fract_target, counted per (scene, image, object);
+    BOP24 targets (6D detection): the images with at least one of them."""
     targets = []
     test_dir = root / "test"
     for scene_dir in sorted(p for p in test_dir.iterdir() if p.is_dir()):
@@ -196,6 +200,8 @@ def write_test_targets(root: Path, cfg: SynthConfig) -> list[io.Target]:
             counts = Counter(g.obj_id for g, i in zip(gts[im_id], infos[im_id]) if i.visib_fract >= cfg.min_visib_fract_target)
             targets += [io.Target(int(scene_dir.name), im_id, o, c) for o, c in sorted(counts.items())]
     io.save_json(root / "test_targets_bop19.json", io.targets_to_json(targets))
+    images = list(dict.fromkeys(io.ImageTarget(t.scene_id, t.im_id) for t in targets))  # images with a target
+    io.save_json(root / "test_targets_bop24.json", io.image_targets_to_json(images))
     return targets
 
 
@@ -207,7 +213,14 @@ def generate(cfg: SynthConfig, root: str | Path, splits: tuple[str, ...] = ("tra
 
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    write_bop_models(cfg.obj_ids, root)
+    if cfg.models_dir:
+        from dataclasses import replace
+
+        from cosy_lite.synth.custom_objects import write_custom_models
+
+        cfg = replace(cfg, obj_ids=sorted(write_custom_models(cfg.models_dir, cfg.models_units, root)))
+    else:
+        write_bop_models(cfg.obj_ids, root)
     write_camera_json(root, cfg)
 
     todo: list[tuple[Path, list[LayoutTask]]] = []

@@ -315,7 +315,7 @@ def _input_key(obj_id: int) -> str:
     return h.hexdigest()
 
 
-def _write_if_changed(path: Path, data: bytes) -> None:
+def write_if_changed(path: Path, data: bytes) -> None:
     if path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -351,7 +351,7 @@ def write_bop_models(obj_ids: list[int], out_root: Path) -> dict[int, ModelInfo]
         ):
             built = _build_object(obj_id)
             for rel, data in built.files.items():
-                _write_if_changed(out_root / rel, data)
+                write_if_changed(out_root / rel, data)
             entry = {
                 "key": key,
                 "files": {rel: _sha(data) for rel, data in sorted(built.files.items())},
@@ -361,7 +361,7 @@ def write_bop_models(obj_ids: list[int], out_root: Path) -> dict[int, ModelInfo]
         entries[str(obj_id)] = entry["info"]
     text = io.dumps_bop(entries).encode()
     for folder in ("models", "models_eval"):
-        _write_if_changed(out_root / folder / "models_info.json", text)
+        write_if_changed(out_root / folder / "models_info.json", text)
     manifest = {k: manifest[k] for k in sorted(manifest, key=int)}  # insertion order kept: models_info key order
-    _write_if_changed(manifest_path, json.dumps(manifest, indent=1).encode())
+    write_if_changed(manifest_path, json.dumps(manifest, indent=1).encode())
     return io.load_models_info(out_root / "models" / "models_info.json")

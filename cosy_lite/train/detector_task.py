@@ -15,7 +15,7 @@ held-out images. Checkpoints store the detector config and the obj_id label map
 
 Inference API::
 
-    detector, label_map = load_detector("runs/ycbv-synth-detector/checkpoint.pt")
+    detector, label_map = load_detector("runs/ycbvsynth-detector/checkpoint.pt")
     dets = detect(detector, [image])  # image: [3,H,W] float in [0,1]; -> [Detections] (obj_ids, boxes px, masks)
 """
 
@@ -68,7 +68,7 @@ class DetectorTrainConfig:
     """Everything that defines a detector training run (YAML in configs/detector/ holds differences)."""
 
     model: str = "detector"
-    dataset: str = "ycbv-synth"
+    dataset: str = "ycbvsynth"
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     data: DetectorDataConfig = field(default_factory=DetectorDataConfig)
     augmentation: AugmentationConfig = field(default_factory=AugmentationConfig)

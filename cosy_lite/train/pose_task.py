@@ -88,7 +88,7 @@ class PoseTrainConfig:
     """Everything that defines a coarse or refiner training run (YAML in configs/ holds differences)."""
 
     model: str = "refiner"
-    dataset: str = "ycbv-synth"
+    dataset: str = "ycbvsynth"
     net: PoseNetConfig = field(default_factory=PoseNetConfig)
     data: PoseDataConfig = field(default_factory=PoseDataConfig)
     noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)

@@ -1,0 +1,156 @@
+"""``cosy-lite predict`` on one generated image with tiny untrained checkpoints (torch) and their ONNX
+export: JSON (R, t in mm, the BOP19 row), CSV, overlay, timings; clear errors for bad inputs.
+
+Untrained pose nets output a zero update, so every pose is the starting pose of its box (canonical
+rotation, depth from the box): the expected poses are computed independently from the boxes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from test_inference import OBJ_IDS, _save_pose_ckpt  # the tiny checkpoints of the inference tests
+
+from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.bop.results import read_results_csv
+from cosy_lite.cli import main as cli
+from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
+
+
+@pytest.fixture(scope="module")
+def setup(tiny_synth_root, tmp_path_factory) -> dict:
+    """Checkpoints, an export folder, one test image with its camera file and GT-box detections."""
+    from cosy_lite.export.onnx_export import export_models
+    from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap
+    from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
+
+    d = tmp_path_factory.mktemp("predict")
+    torch.manual_seed(0)
+    det = Detector(LabelMap(tuple(OBJ_IDS)), DetectorConfig(
+        name="maskrcnn_mobilenet_v3_large_fpn", fpn_channels=32, mask_head_channels=16, box_head_size=64,
+        min_size=160, max_size=214, rpn_pre_nms_top_n_test=100, rpn_post_nms_top_n_test=50,
+        box_score_thresh=0.0, box_detections_per_img=5))
+    save_checkpoint(d / "detector.pt", Checkpoint("detector", det.state_dict(), {}, 0, meta=det.meta()))
+    coarse, refiner = _save_pose_ckpt(d / "coarse.pt", "coarse"), _save_pose_ckpt(d / "refiner.pt", "refiner")
+    export_models(d / "export", coarse=coarse, refiner=refiner)
+    ds = BopDataset(tiny_synth_root)
+    rec = next(ds.images("test"))
+    (d / "camera.json").write_text(json.dumps({"cam_K": rec.camera.K.reshape(-1).tolist(),
+                                               "depth_scale": rec.camera.depth_scale}))
+    visible = [(g, i) for g, i in zip(rec.gt, rec.gt_info) if i.visib_fract >= 0.1]
+    dets = [{"scene_id": rec.scene_id, "image_id": rec.im_id, "category_id": g.obj_id, "score": 0.9 - 0.1 * k,
+             "bbox": [float(v) for v in i.bbox_visib], "time": 0.0} for k, (g, i) in enumerate(visible)]
+    (d / "dets.json").write_text(json.dumps(dets))
+    return {"dir": d, "coarse": coarse, "refiner": refiner, "detector": d / "detector.pt", "export": d / "export",
+            "rec": rec, "root": tiny_synth_root, "dets": dets}
+
+
+def _args(s: dict, out: Path, *extra: str) -> list[str]:
+    return ["predict", "--rgb", str(s["rec"].rgb_path), "--camera", str(s["dir"] / "camera.json"),
+            "--models", str(s["root"]), "--out", str(out), "--n-refiner-iters", "1", *extra]
+
+
+def _expected_poses(s: dict) -> dict[int, np.ndarray]:
+    """obj_id -> starting pose [4,4] (m) of its GT box (each object is once in the detections)."""
+    K = torch.as_tensor(s["rec"].camera.K)
+    ds = BopDataset(s["root"])
+    out = {}
+    for d in s["dets"]:
+        x, y, w, h = d["bbox"]
+        box = torch.tensor([[x, y, x + w, y + h]], dtype=torch.float64)
+        diam = torch.tensor([ds.models_info[d["category_id"]].diameter], dtype=torch.float64)
+        out.setdefault(d["category_id"], []).append(initial_pose_from_boxes(box, K[None], diam)[0].numpy())
+    return out
+
+
+def _check_outputs(s: dict, out: Path, backend: str) -> dict:
+    pred = json.loads((out / "predictions.json").read_text())
+    assert pred["backend"] == backend and len(pred["estimates"]) == len(s["dets"])
+    expected = _expected_poses(s)
+    rows = (out / "predictions.csv").read_text().split("\n")
+    assert rows[0] == "scene_id,im_id,obj_id,score,R,t,time"
+    for e, row in zip(pred["estimates"], rows[1:]):
+        t_m = np.array(e["t"]) / 1000.0  # t is in millimetres
+        assert min(np.abs(t_m - T[:3, 3]).max() for T in expected[e["obj_id"]]) < 1e-5
+        np.testing.assert_allclose(e["R"], CANONICAL_ROTATIONS["z_up"].numpy(), atol=1e-6)
+        assert e["bop19_csv_row"] == row and row.startswith(f"0,0,{e['obj_id']},")
+    assert [e["score"] for e in pred["estimates"]] == pytest.approx(sorted((d["score"] for d in s["dets"]), reverse=True))
+    assert set(pred["timings_ms"]) == {"detection", "crops", "render", "networks", "icp", "total"}
+    assert pred["timings_ms"]["networks"] > 0 and pred["seconds"] > 0
+    assert cv2.imread(str(out / "overlay.png")).shape == (480, 640, 3)
+    est = read_results_csv(out / "predictions.csv")
+    assert len(est) == len(s["dets"]) and len({e.time for e in est}) == 1
+    return pred
+
+
+def test_torch_backend_with_given_detections(setup, tmp_path):
+    assert cli(_args(setup, tmp_path, "--coarse", str(setup["coarse"]), "--refiner", str(setup["refiner"]),
+                     "--detections", str(setup["dir"] / "dets.json"))) == 0
+    _check_outputs(setup, tmp_path, "torch")
+
+
+def test_onnx_backend_gives_the_same_poses(setup, tmp_path):
+    assert cli(_args(setup, tmp_path, "--onnx", str(setup["export"]), "--detections", str(setup["dir"] / "dets.json"))) == 0
+    _check_outputs(setup, tmp_path, "onnx")
+
+
+def test_detector_icp_and_an_object_subset(setup, tmp_path):
+    rec = setup["rec"]
+    assert cli(_args(setup, tmp_path, "--coarse", str(setup["coarse"]), "--detector", str(setup["detector"]),
+                     "--depth", str(rec.depth_path), "--icp", "--objects", "1,5")) == 0
+    pred = json.loads((tmp_path / "predictions.json").read_text())
+    assert pred["icp"] and len(pred["estimates"]) <= 5  # the tiny detector keeps 5 boxes
+    assert {e["obj_id"] for e in pred["estimates"]} <= {1, 5}
+
+
+def test_python_api(setup):
+    from cosy_lite.bop import io
+    from cosy_lite.inference.command_predict import predict_image
+    from cosy_lite.inference.predictor import Predictor
+
+    p = Predictor.from_checkpoints(coarse=setup["coarse"], models_dir=setup["root"] / "models", n_refiner_iterations=0,
+                                   detector=setup["detector"])
+    cam = io.load_camera_file(setup["dir"] / "camera.json")
+    out = predict_image(p, io.load_image(setup["rec"].rgb_path), cam.K)
+    assert out.overlay.shape == (480, 640, 3) and len(out.estimates) <= 5 and out.seconds > 0
+
+
+@pytest.mark.parametrize("content, field, message", [
+    ({"fx": 500.0, "cx": 320.0, "cy": 240.0}, "fy", "missing field"),
+    ({"cam_K": [500.0, 0, 320, 0, 500, 240, 0, 0]}, "cam_K", "expected 9 numbers"),
+    ({"K": [[-500.0, 0, 320], [0, 500, 240], [0, 0, 1]]}, "K", "focal lengths must be > 0"),
+    ({"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0, "width": 1280, "height": 960}, "width", "1280x960"),
+    ([1, 2, 3], "", "expected a JSON object"),
+])
+def test_bad_camera_files(setup, tmp_path, capsys, content, field, message):
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps(content))
+    args = _args(setup, tmp_path / "out", "--coarse", str(setup["coarse"]), "--detector", str(setup["detector"]))
+    args[args.index("--camera") + 1] = str(cam)
+    assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert str(cam) in err and message in err and (not field or f"[{field}]" in err)
+
+
+def test_bad_arguments(setup, tmp_path, capsys):
+    ck = ["--coarse", str(setup["coarse"]), "--detector", str(setup["detector"])]
+    assert cli(_args(setup, tmp_path, *ck, "--icp")) == 2
+    assert "--icp needs --depth" in capsys.readouterr().err
+    assert cli(_args(setup, tmp_path, *ck, "--objects", "1,99")) == 2
+    assert "[99]" in capsys.readouterr().err
+    assert cli(_args(setup, tmp_path, "--coarse", str(setup["coarse"]))) == 2
+    assert "no detections" in capsys.readouterr().err
+    bad_models = _args(setup, tmp_path, *ck)
+    bad_models[bad_models.index("--models") + 1] = str(setup["export"])
+    assert cli(bad_models) == 2
+    assert "pass it as --onnx" in capsys.readouterr().err
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((100, 120), np.uint16))
+    assert cli(_args(setup, tmp_path, *ck, "--depth", str(small))) == 2
+    err = capsys.readouterr().err
+    assert str(small) in err and "120x100" in err
