@@ -52,8 +52,9 @@ def main() -> None:
         for ax, (k, _) in zip(axes, keys):
             ax.plot([r["crops"] for r in val], [r[k] for r in val], marker=".", label=run.name)
         if train:
-            axes[3].plot([r["crops"] for r in train], [r["total"] for r in train], alpha=0.7, label=run.name)
-    for ax, (_, title) in zip(axes, keys + [(None, "training loss (m)")]):
+            loss = [r.get("total", r.get("ce")) for r in train]  # flow-refiner harness logs: cross-entropy
+            axes[3].plot([r["crops"] for r in train], loss, alpha=0.7, label=run.name)
+    for ax, (_, title) in zip(axes, keys + [(None, "training loss (m; flow runs: cross-entropy)")]):
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("training crops seen")
         ax.grid(alpha=0.3)

@@ -361,3 +361,46 @@ def test_onnx_detector_feeds_the_predictor(tiny_synth_root, export):
     est_ref, est = ref.predict(rgb, rec.camera.K), p.predict(rgb, rec.camera.K)
     assert torch.equal(est.obj_ids, est_ref.obj_ids) and est.timings["detection"] > 0
     assert float((est.TCO - est_ref.TCO).abs().max()) <= 1e-4
+
+
+def test_flow_refiner_exports_and_gives_the_torch_poses(tiny_synth_root, tmp_path):
+    """A flow refiner (net.arch=flow) through infer.py: checkpoints vs their ONNX export (the numpy
+    solver on the onnxruntime path), oracle boxes, coarse + 1 refiner iteration: the same poses (a
+    random flow network's field is rough, so the solver amplifies the ~1e-6 network differences)."""
+    import infer
+    from cosy_lite.bop.results import read_results_csv
+    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+
+    cfg = PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[48, 64], corr_radius=2, width=16)
+    torch.manual_seed(3)
+    net = build_pose_net(cfg, "refiner", load_weights=False).eval()
+    for m in net.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 2.0)
+    meta = {"obj_ids": OBJ_IDS, "net": asdict(cfg), "dataset": "tiny", "model": "refiner"}
+    refiner = tmp_path / "refiner.pt"
+    save_checkpoint(refiner, Checkpoint("refiner", net.state_dict(), {"net": asdict(cfg)}, 0, meta=meta))
+    coarse = _save_pose_ckpt(tmp_path / "coarse.pt", "coarse", 1)
+    from cosy_lite.export.onnx_export import export_models
+
+    export_models(tmp_path / "models", coarse=coarse, refiner=refiner)
+    entry = Manifest.read(tmp_path / "models").models["refiner"]
+    assert entry.check["max_abs_diff"] < 1e-2 * max(1.0, entry.check["max_abs_output"])
+    assert OnnxPoseNet(tmp_path / "models" / entry.file, 1, "refiner").output == "flow"
+    common = ["--dataset", str(tiny_synth_root), "--detections", "oracle", "--no-progress", "--threads", "1"]
+    assert infer.main([*common, "--coarse", str(coarse), "--refiner", str(refiner), "--n-refiner-iters", "1",
+                       "--out", str(tmp_path / "t")]) == 0
+    assert infer.main([*common, "--backend", "onnx", "--models", str(tmp_path / "models"), "--n-refiner-iters", "1",
+                       "--out", str(tmp_path / "o")]) == 0
+    assert infer.main([*common, "--coarse", str(coarse), "--refiner", str(refiner), "--n-refiner-iters", "0",
+                       "--out", str(tmp_path / "c")]) == 0  # coarse only
+    ref, out, co = (read_results_csv(next((tmp_path / x).glob("*.csv"))) for x in "toc")
+    assert len(ref) == len(out) == len(co) > 0
+    moved = 0.0
+    for a, b, c in zip(ref, out, co):
+        assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)
+        assert np.abs(a.TCO[:3, 3] - b.TCO[:3, 3]).max() <= 1e-3  # m
+        assert np.abs(a.TCO[:3, :3] - b.TCO[:3, :3]).max() <= 3e-3
+        moved = max(moved, float(np.abs(a.TCO[:3, 3] - c.TCO[:3, 3]).max()))
+    assert moved > 1e-4  # the refiner's flow did move the poses: not a comparison of identities

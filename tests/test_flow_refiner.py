@@ -9,7 +9,8 @@ import torch
 from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.models.flow_pose_net import FlowPoseNet, flow_from_cost, local_cost_volume
-from cosy_lite.models.flow_pose_solver import MIN_CELLS, pose_from_flow
+from cosy_lite.models import flow_pose_solver
+from cosy_lite.models.flow_pose_solver_np import MIN_CELLS, pose_from_flow
 from cosy_lite.models.flow_targets import FlowTargets, flow_loss, flow_targets
 from cosy_lite.models.initial_pose import add_pose_noise
 from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
@@ -86,6 +87,25 @@ def test_solver_keeps_the_pose_without_enough_cells_or_with_nan():
     np.testing.assert_array_equal(new[0], noisy.numpy()[0])
     np.testing.assert_array_equal(new[1], noisy.numpy()[1])  # NaN cells weigh nothing: none left, kept
     assert np.isfinite(new).all()
+
+
+def test_torch_solver_equals_the_numpy_twin_and_is_differentiable():
+    gt, noisy = _poses(3, seed=2)
+    K = _K(3)
+    depth = _sphere_depth(noisy, K)
+    t = flow_targets(depth, K, noisy, gt, torch.ones(3, H, W, dtype=torch.bool), S)
+    g = torch.Generator().manual_seed(0)
+    flow = torch.cat([t.flow.permute(0, 3, 1, 2).double() + torch.randn(3, 2, H // S, W // S, generator=g,
+                                                                          dtype=torch.float64),
+                      torch.rand(3, 1, H // S, W // S, generator=g, dtype=torch.float64)], 1)
+    flow[1, 2] = 0.0  # item 1: no confident cell -> kept
+    flow.requires_grad_(True)
+    new = flow_pose_solver.pose_from_flow(noisy, K, depth, flow, S)
+    ref = pose_from_flow(noisy.numpy(), K.numpy(), depth.numpy(), flow.detach().numpy(), S)
+    np.testing.assert_allclose(new.detach().numpy(), ref, atol=1e-9)
+    assert torch.equal(new[1].detach(), noisy[1])
+    new[:, :3, 3].sum().backward()
+    assert torch.isfinite(flow.grad).all() and flow.grad[0].abs().sum() > 0 and flow.grad[1].abs().sum() == 0
 
 
 def test_a_uniform_shift_moves_the_object_sideways_only():
@@ -179,7 +199,7 @@ def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
         out["total"].backward()
         opt.step()
         losses.append(out["total"].item())
-    assert set(out) == {"total", "flow_epe_px", "supervised_cells"} and out["supervised_cells"] > 0.1
+    assert set(out) == {"total", "flow_ce", "pose", "flow_epe_px", "supervised_cells"} and out["supervised_cells"] > 0.1
     assert losses[-1] < 0.7 * losses[0], losses
     torch.manual_seed(0)
     rows = task.objects.index(batch.obj_ids)

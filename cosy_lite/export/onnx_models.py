@@ -132,7 +132,8 @@ class OnnxPoseNet:
                                  f"metadata crop_resolution {h}x{w})")
         self.output = "flow" if self.config.get("arch") == "flow" else "delta"
         expected = [FLOW_CHANNELS, h // FLOW_STRIDE, w // FLOW_STRIDE] if self.output == "flow" else [POSE_OUTPUTS]
-        if list(outputs[0].shape)[1:] != expected:
+        got = list(outputs[0].shape)[1:]  # symbolic (str) sizes of traced spatial dims match any value
+        if len(got) != len(expected) or any(isinstance(g, int) and g != e for g, e in zip(got, expected)):
             raise OnnxModelError(self.path, f"output {outputs[0].name} shape", f"{list(outputs[0].shape)}, expected "
                                  f"[batch, {', '.join(map(str, expected))}] (metadata config arch: {self.output})")
         self.input_name = inputs[0].name

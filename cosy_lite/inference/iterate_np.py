@@ -6,7 +6,7 @@ sampling in numpy, :func:`~cosy_lite.geometry.crops_np.crop_image`) and ``K_crop
 rendered with ``K_crop`` (:meth:`Renderer.render`, numpy out), the ``[B,6,h,w]`` float32 input
 (crop, rendering) -> a numpy network (:meth:`cosy_lite.export.onnx_models.OnnxPoseNet.run`) ->
 :func:`cosy_lite.models.pose_update_np.apply_pose_update` (9-number networks) or
-:func:`cosy_lite.models.flow_pose_solver.pose_from_flow` (flow networks, with the rendering's depth). Poses are float64 throughout. Pose
+:func:`cosy_lite.models.flow_pose_solver_np.pose_from_flow` (flow networks, with the rendering's depth). Poses are float64 throughout. Pose
 checks (:func:`valid_poses`, :func:`orthonormalise`) are here too. Imports numpy only (the
 renderer is passed in), so the loop runs where torch is not installed.
 """
@@ -19,7 +19,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cosy_lite.geometry.crops_np import crop_boxes, crop_image, crop_intrinsics
-from cosy_lite.models.flow_pose_solver import pose_from_flow
+from cosy_lite.models.flow_pose_solver_np import pose_from_flow
 from cosy_lite.models.pose_update_np import apply_pose_update
 
 Size = tuple[int, int]

@@ -1,4 +1,4 @@
-"""The pose update of a flow refiner: from a dense 2D displacement field to a new pose (numpy).
+"""The pose update of a flow refiner: from a dense 2D displacement field to a new pose (torch).
 
 The flow network (:class:`~cosy_lite.models.flow_pose_net.FlowPoseNet`) says, for each stride-``s``
 cell of the rendering, where that surface point is in the image crop (``flow [B,2,h,w]``, crop
@@ -10,123 +10,118 @@ weighted least-squares fit of those correspondences (perspective-n-point):
 
 with ``X`` the cell's 3D point (camera frame, current pose), rotation about the object origin
 (``R_new = dR R_in``, as :mod:`cosy_lite.models.pose_update`), solved by damped Gauss-Newton from
-the current pose. Items with fewer than :data:`MIN_CELLS` rendered cells, or a non-finite or
-degenerate solution, keep their input pose.
+the current pose. Items with fewer than ``MIN_CELLS`` confident rendered cells, or a non-finite or
+behind-the-camera solution, keep their input pose.
 
-One implementation, numpy float64, used by the torch path (:mod:`~cosy_lite.models.render_and_compare`),
-the onnxruntime path (:mod:`cosy_lite.inference.iterate_np`) and the flow targets' tests: the update
-is not differentiated (the network is trained on the flow itself,
-:mod:`cosy_lite.models.flow_targets`).
+Differentiable in the flow and the confidences (training puts the pose loss behind the solver,
+:meth:`cosy_lite.train.pose_task.PoseTask`); computed in float64 with autocast off. The numpy twin
+for the onnxruntime path is :mod:`cosy_lite.models.flow_pose_solver_np` (same constants, equal results).
 """
 
 from __future__ import annotations
 
-import numpy as np
+import torch
+from torch import Tensor
 
-MIN_CELLS = 6  # correspondences needed for a pose (6 unknowns)
-GN_ITERATIONS = 10
-HUBER_PX = 2.0  # crop pixels: residuals beyond weigh 1/|r|
-DAMPING = 1e-3  # Levenberg-Marquardt on the Gauss-Newton diagonal
+from cosy_lite.models.flow_pose_solver_np import DAMPING, GN_ITERATIONS, HUBER_PX, MIN_CELLS
+from cosy_lite.models.pose_update import full_precision
 
 
-def cell_centres(shape: tuple[int, int], stride: int) -> np.ndarray:
-    """``[h,w,2]`` crop-pixel coordinates ``(u, v)`` of the centres of an ``h x w`` grid of stride ``stride``
-    (crop pixel ``j`` covers ``[j, j+1)``: the centre of cell ``i`` is ``i s + s / 2``)."""
+def cell_centres(shape: tuple[int, int], stride: int, device: torch.device | str = "cpu") -> Tensor:
+    """``[h,w,2]`` float64 crop-pixel ``(u, v)`` of the centres of the stride cells (cell ``i``: ``i s + s / 2``)."""
     h, w = shape
-    v, u = np.meshgrid(np.arange(h) * stride + stride / 2, np.arange(w) * stride + stride / 2, indexing="ij")
-    return np.stack([u, v], axis=-1).astype(np.float64)
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=device) * stride + stride / 2,
+                          torch.arange(w, dtype=torch.float64, device=device) * stride + stride / 2, indexing="ij")
+    return torch.stack([u, v], dim=-1)
 
 
-def sample_cells(depth: np.ndarray, stride: int, shape: tuple[int, int]) -> np.ndarray:
-    """Depth ``[B,H,W]`` (m, 0 = no object) at the centre pixel of each stride cell: ``[B,h,w]``."""
+def sample_cells(depth: Tensor, stride: int, shape: tuple[int, int]) -> Tensor:
+    """Depth ``[B,1,H,W]`` or ``[B,H,W]`` (m, 0 = no object) at the centre pixel of each cell: ``[B,h,w]`` float64."""
+    if depth.dim() == 4:
+        depth = depth[:, 0]
     h, w = shape
-    d = np.asarray(depth, dtype=np.float64)[:, stride // 2::stride, stride // 2::stride][:, :h, :w]
+    d = depth[:, stride // 2::stride, stride // 2::stride][:, :h, :w].double()
     if d.shape[1:] != (h, w):
         raise ValueError(f"depth {tuple(depth.shape)} has no {h}x{w} cells of stride {stride}")
     return d
 
 
-def backproject(uv: np.ndarray, depth: np.ndarray, K_crop: np.ndarray) -> np.ndarray:
+def backproject(uv: Tensor, depth: Tensor, K_crop: Tensor) -> Tensor:
     """Camera-frame points ``[B,h,w,3]`` of the pixels ``uv [h,w,2]`` at depths ``[B,h,w]`` (m)."""
-    uv1 = np.concatenate([uv, np.ones_like(uv[..., :1])], axis=-1)
-    rays = np.einsum("bij,hwj->bhwi", np.linalg.inv(K_crop), uv1)
-    return rays * depth[..., None]
+    uv1 = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)
+    return torch.einsum("bij,hwj->bhwi", torch.linalg.inv(K_crop.double()), uv1) * depth[..., None]
 
 
-def _skew(w: np.ndarray) -> np.ndarray:
-    z = np.zeros_like(w[..., 0])
-    return np.stack([np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
-                     np.stack([-w[..., 1], w[..., 0], z], -1)], axis=-2)
+def _skew(w: Tensor) -> Tensor:
+    z = torch.zeros_like(w[..., 0])
+    return torch.stack([torch.stack([z, -w[..., 2], w[..., 1]], -1), torch.stack([w[..., 2], z, -w[..., 0]], -1),
+                        torch.stack([-w[..., 1], w[..., 0], z], -1)], dim=-2)
 
 
-def so3_exp(w: np.ndarray) -> np.ndarray:
+def so3_exp(w: Tensor) -> Tensor:
     """Rotation matrices ``[B,3,3]`` of axis-angle vectors ``w [B,3]`` (Rodrigues)."""
-    theta = np.linalg.norm(w, axis=-1)[:, None, None]
-    k = _skew(w / np.maximum(theta[:, :, 0], 1e-12))
-    return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * (k @ k)
+    theta = w.norm(dim=-1)[:, None, None]
+    k = _skew(w / theta[:, :, 0].clamp(min=1e-12))
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + theta.sin() * k + (1 - theta.cos()) * (k @ k)
 
 
-def solve_pose(TCO: np.ndarray, K_crop: np.ndarray, points: np.ndarray, targets: np.ndarray, weights: np.ndarray,
-               iterations: int = GN_ITERATIONS, huber_px: float = HUBER_PX) -> np.ndarray:
-    """Weighted robust PnP from the current pose.
+def solve_pose(TCO: Tensor, K_crop: Tensor, points: Tensor, targets: Tensor, weights: Tensor,
+               iterations: int = GN_ITERATIONS, huber_px: float = HUBER_PX) -> Tensor:
+    """Weighted robust PnP from the current pose (float64).
 
     ``TCO [B,4,4]`` (m) the current pose; ``points [B,N,3]`` camera-frame 3D points at that pose;
     ``targets [B,N,2]`` their image positions (crop px, ``K_crop [B,3,3]``); ``weights [B,N] >= 0``.
     Returns ``TCO_new [B,4,4]``: ``R_new = dR R``, ``t_new`` (the object origin moves with the points).
     """
-    TCO = np.asarray(TCO, dtype=np.float64)
-    B = len(TCO)
+    TCO, K_crop = TCO.double(), K_crop.double()
+    B = TCO.shape[0]
     centred = points - TCO[:, None, :3, 3]
-    dR = np.repeat(np.eye(3)[None], B, axis=0)
-    t = TCO[:, :3, 3].copy()
+    eye6 = torch.eye(6, dtype=torch.float64, device=TCO.device)
+    dR = torch.eye(3, dtype=torch.float64, device=TCO.device).expand(B, 3, 3)
+    t = TCO[:, :3, 3]
     fx, fy = K_crop[:, 0, 0, None], K_crop[:, 1, 1, None]
     cx, cy = K_crop[:, 0, 2, None], K_crop[:, 1, 2, None]
     for _ in range(iterations):
-        P = np.einsum("bij,bnj->bni", dR, centred)
+        P = torch.einsum("bij,bnj->bni", dR, centred)
         Y = P + t[:, None]
-        z = np.maximum(Y[..., 2], 1e-3)
-        residual = np.stack([fx * Y[..., 0] / z + cx, fy * Y[..., 1] / z + cy], axis=-1) - targets
-        zero = np.zeros_like(z)
-        J_y = np.stack([np.stack([fx / z, zero, -fx * Y[..., 0] / z ** 2], -1),
-                        np.stack([zero, fy / z, -fy * Y[..., 1] / z ** 2], -1)], axis=-2)  # [B,N,2,3]
-        J = np.concatenate([-J_y @ _skew(P), J_y], axis=-1)  # d/d(rotation about the origin, translation)
-        e = np.linalg.norm(residual, axis=-1)
-        w = weights * np.where(e < huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
-        H = np.einsum("bnki,bn,bnkj->bij", J, w, J)
-        g = np.einsum("bnki,bn,bnk->bi", J, w, residual)
-        H = H + DAMPING * np.einsum("bii->bi", H)[:, :, None] * np.eye(6) + 1e-12 * np.eye(6)
-        step = -np.linalg.solve(H, g[..., None])[..., 0]
+        z = Y[..., 2].clamp(min=1e-3)
+        residual = torch.stack([fx * Y[..., 0] / z + cx, fy * Y[..., 1] / z + cy], dim=-1) - targets
+        zero = torch.zeros_like(z)
+        J_y = torch.stack([torch.stack([fx / z, zero, -fx * Y[..., 0] / z ** 2], -1),
+                           torch.stack([zero, fy / z, -fy * Y[..., 1] / z ** 2], -1)], dim=-2)  # [B,N,2,3]
+        J = torch.cat([-J_y @ _skew(P), J_y], dim=-1)  # d/d(rotation about the origin, translation)
+        e = residual.norm(dim=-1)
+        w = weights * torch.where(e < huber_px, torch.ones_like(e), huber_px / e.clamp(min=1e-12))
+        H = torch.einsum("bnki,bn,bnkj->bij", J, w, J)
+        g = torch.einsum("bnki,bn,bnk->bi", J, w, residual)
+        H = H + DAMPING * torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-12 * eye6
+        step = -torch.linalg.solve(H, g[..., None])[..., 0]
         dR = so3_exp(step[:, :3]) @ dR
         t = t + step[:, 3:]
-    out = TCO.copy()
-    out[:, :3, :3] = dR @ TCO[:, :3, :3]
-    out[:, :3, 3] = t
-    return out
+    top = torch.cat([dR @ TCO[:, :3, :3], t[:, :, None]], dim=2)
+    return torch.cat([top, TCO[:, 3:]], dim=1)
 
 
-def pose_from_flow(TCO: np.ndarray, K_crop: np.ndarray, depth: np.ndarray, flow: np.ndarray, stride: int) -> np.ndarray:
-    """``TCO_new [B,4,4]`` from the flow network's output ``flow [B,3,h,w]`` (displacement x, y in crop
-    px of each rendered cell, confidence in [0, 1]) and the rendering's ``depth [B,H,W]`` or
-    ``[B,1,H,W]`` (m) at the current poses ``TCO [B,4,4]`` with intrinsics ``K_crop [B,3,3]``."""
-    TCO = np.asarray(TCO, dtype=np.float64)
-    K_crop = np.asarray(K_crop, dtype=np.float64)
-    flow = np.asarray(flow, dtype=np.float64)
-    depth = np.asarray(depth)
-    if depth.ndim == 4:
-        depth = depth[:, 0]
+@full_precision
+def pose_from_flow(TCO: Tensor, K_crop: Tensor, depth: Tensor, flow: Tensor, stride: int,
+                   iterations: int = GN_ITERATIONS) -> Tensor:
+    """``TCO_new [B,4,4]`` (float64) from the flow network's output ``flow [B,3,h,w]`` (displacement
+    x, y in crop px of each rendered cell, confidence in [0, 1]) and the rendering's ``depth
+    [B,1,H,W]`` (m) at the current poses ``TCO [B,4,4]`` with intrinsics ``K_crop [B,3,3]``."""
+    TCO, flow = TCO.double(), flow.double()
     B, _, h, w = flow.shape
-    uv = cell_centres((h, w), stride)
+    uv = cell_centres((h, w), stride, flow.device)
     d = sample_cells(depth, stride, (h, w))
     X = backproject(uv, d, K_crop).reshape(B, -1, 3)
-    targets = (uv[None] + flow[:, :2].transpose(0, 2, 3, 1)).reshape(B, -1, 2)
-    finite = np.isfinite(flow).all(axis=1).reshape(B, -1)  # a cell with a NaN output is no correspondence
-    weights = np.where(d > 0, np.clip(np.nan_to_num(flow[:, 2], nan=0.0), 0.0, 1.0), 0.0).reshape(B, -1)
-    weights = np.where(finite, weights, 0.0)
-    targets = np.where(finite[..., None], targets, 0.0)
-    enough = (weights > 0).sum(axis=1) >= MIN_CELLS
-    new = TCO.copy()
-    if enough.any():
-        new[enough] = solve_pose(TCO[enough], K_crop[enough], X[enough], targets[enough], weights[enough])
-    bad = ~np.isfinite(new).all(axis=(1, 2)) | (new[:, 2, 3] <= 0)
-    new[bad] = TCO[bad]
-    return new
+    finite = torch.isfinite(flow).all(dim=1).reshape(B, -1)  # a cell with a NaN output is no correspondence
+    safe = torch.where(torch.isfinite(flow), flow, torch.zeros_like(flow))
+    targets = (uv[None] + safe[:, :2].permute(0, 2, 3, 1)).reshape(B, -1, 2)
+    weights = torch.where((d > 0).reshape(B, -1) & finite, safe[:, 2].clamp(0.0, 1.0).reshape(B, -1),
+                          torch.zeros_like(finite, dtype=torch.float64))
+    enough = (weights > 0).sum(dim=1) >= MIN_CELLS
+    out = TCO.clone()
+    if bool(enough.any()):
+        out[enough] = solve_pose(TCO[enough], K_crop[enough], X[enough], targets[enough], weights[enough], iterations)
+    ok = torch.isfinite(out).all(dim=2).all(dim=1) & (out[:, 2, 3] > 0)
+    return torch.where(ok[:, None, None], out, TCO)

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from cosy_lite.models.flow_pose_solver import backproject, cell_centres, sample_cells
+
 
 @dataclass
 class FlowTargets:
@@ -27,24 +29,15 @@ class FlowTargets:
     valid: Tensor
 
 
-def cell_grid(shape: tuple[int, int], stride: int, dtype: torch.dtype = torch.float64) -> Tensor:
-    """``[h,w,2]`` crop-pixel ``(u, v)`` of the stride-cell centres (as ``flow_pose_solver.cell_centres``)."""
-    h, w = shape
-    v, u = torch.meshgrid(torch.arange(h, dtype=dtype) * stride + stride / 2,
-                          torch.arange(w, dtype=dtype) * stride + stride / 2, indexing="ij")
-    return torch.stack([u, v], dim=-1)
-
-
 def flow_targets(depth: Tensor, K_crop: Tensor, TCO_in: Tensor, TCO_gt: Tensor, visible: Tensor, stride: int) -> FlowTargets:
     """Targets for renderings ``depth [B,1,H,W]`` (m) made at ``TCO_in [B,4,4]`` with ``K_crop [B,3,3]``;
     ``TCO_gt [B,4,4]`` the GT (already the symmetric pose closest to ``TCO_in``); ``visible [B,H,W]``
     bool the instance's visible pixels in the image crop."""
     B, _, H, W = depth.shape
     h, w = H // stride, W // stride
-    d = depth[:, 0, stride // 2::stride, stride // 2::stride][:, :h, :w].double()
-    uv = cell_grid((h, w), stride).to(depth.device)
-    uv1 = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)
-    X = torch.einsum("bij,hwj->bhwi", torch.linalg.inv(K_crop.double()), uv1) * d[..., None]
+    d = sample_cells(depth, stride, (h, w))
+    uv = cell_centres((h, w), stride, depth.device)
+    X = backproject(uv, d, K_crop)
     T = TCO_gt.double() @ torch.linalg.inv(TCO_in.double())
     Y = torch.einsum("bij,bhwj->bhwi", T[:, :3, :3], X) + T[:, None, None, :3, 3]
     p = torch.einsum("bij,bhwj->bhwi", K_crop.double(), Y)

@@ -72,9 +72,7 @@ def updated_poses(TCO: Tensor, inp: NetInputs, out: Tensor, output: str = "delta
         from cosy_lite.models.flow_pose_net import FlowPoseNet
         from cosy_lite.models.flow_pose_solver import pose_from_flow
 
-        new = pose_from_flow(TCO.detach().double().cpu().numpy(), inp.K_crop.double().cpu().numpy(),
-                             inp.depth.cpu().numpy(), out.detach().double().cpu().numpy(), FlowPoseNet.stride)
-        return torch.from_numpy(new).to(TCO)
+        return pose_from_flow(TCO, inp.K_crop, inp.depth, out, FlowPoseNet.stride).to(TCO.dtype)
     if output != "delta":
         raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
     return apply_pose_update(TCO, inp.K_crop, out.to(TCO.dtype))

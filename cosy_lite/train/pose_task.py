@@ -35,6 +35,7 @@ from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
 
 POSE_MODELS = ("coarse", "refiner")
+FLOW_TRAIN_GN_ITERATIONS = 5  # Gauss-Newton steps behind the training pose loss (inference: the solver's 10)
 
 
 @dataclass
@@ -94,6 +95,9 @@ class PoseTrainConfig:
     noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
     augmentation: AugmentationConfig = field(default_factory=AugmentationConfig)
     val_iterations: int = 4  # refiner: 4 (trained with 1); coarse: 1
+    # flow refiner (net.arch=flow): loss = flow cross-entropy + flow_pose_weight x the disentangled
+    # pose loss of the pose solved from the flow (through the differentiable solver)
+    flow_pose_weight: float = 10.0
     loop: LoopConfig = field(default_factory=LoopConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
 
@@ -297,9 +301,12 @@ class PoseTask:
 
     def _flow_losses(self, model, batch, inp, TCO_in: Tensor, points: Tensor, syms: Tensor, sym_mask: Tensor,
                      res: tuple[int, int]) -> dict[str, Tensor]:
-        """Flow refiner: cross-entropy of the cost volume at the GT displacement of each visible cell."""
+        """Flow refiner: cross-entropy of the cost volume at the GT displacement of each visible cell,
+        plus the pose loss of the pose solved from the predicted flow."""
         from cosy_lite.models.flow_pose_net import FlowPoseNet, flow_from_cost
+        from cosy_lite.models.flow_pose_solver import pose_from_flow
         from cosy_lite.models.flow_targets import end_point_error, flow_loss, flow_targets
+        from cosy_lite.models.pose_update import pose_update_targets
 
         with torch.no_grad():
             TCO_gt = closest_symmetric_pose(TCO_in.double(), batch.TCO.double(), points.double(), syms.double(), sym_mask)
@@ -307,11 +314,21 @@ class PoseTask:
             targets = flow_targets(inp.depth, inp.K_crop, TCO_in, TCO_gt, visible, FlowPoseNet.stride)
         logits = model(inp.images, cost_volume=True)
         radius = self.cfg.net.corr_radius
-        loss = flow_loss(logits.float(), targets, radius, FlowPoseNet.stride)
+        ce = flow_loss(logits.float(), targets, radius, FlowPoseNet.stride)
+        flow = flow_from_cost(logits.float(), radius, FlowPoseNet.stride)
+        out = {"flow_ce": ce.detach()}
+        total = ce
+        if self.cfg.flow_pose_weight > 0:
+            TCO_new = pose_from_flow(TCO_in, inp.K_crop, inp.depth, flow, FlowPoseNet.stride, FLOW_TRAIN_GN_ITERATIONS)
+            delta = pose_update_targets(TCO_in.double(), TCO_new, inp.K_crop.double())
+            terms = disentangled_loss(TCO_in, inp.K_crop, delta.float(), batch.TCO, points, syms, sym_mask)
+            if torch.isfinite(terms.total):  # a degenerate solve of one batch contributes no pose gradient
+                total = total + self.cfg.flow_pose_weight * terms.total
+            out["pose"] = terms.total.detach()
         with torch.no_grad():
-            epe = end_point_error(flow_from_cost(logits.float(), radius, FlowPoseNet.stride), targets)
-            supervised = targets.valid.float().mean()
-        return {"total": loss, "flow_epe_px": epe, "supervised_cells": supervised}
+            out["flow_epe_px"] = end_point_error(flow, targets)
+            out["supervised_cells"] = targets.valid.float().mean()
+        return {"total": total, **out}
 
     # ------------------------------------------------------------------ validation
     def _validation_batch(self, device: torch.device) -> dict[str, Any]:
