@@ -88,7 +88,7 @@ class _InlineExecutor:
         f.set_result(fn(*args))
         return f
 
-    def shutdown(self) -> None:
+    def shutdown(self, cancel_futures: bool = False) -> None:
         pass
 
 
