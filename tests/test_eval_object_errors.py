@@ -141,7 +141,7 @@ def test_adi_cap_skips_only_pairs_provably_beyond_it():
 
 def test_adi_cap_sample_bound_skips_what_the_sphere_bound_misses():
     # 17 cm apart: the bounding-sphere bound (7.6 cm) does not reach the 10 cm cap, the bound from the
-    # exact distances of the vertex samples does (ADI 11.3 cm): +inf, as a value >= the cap would
+    # exact distances of the sample points does (ADI 11.3 cm): +inf, as a value >= the cap would
     # score. 15 cm apart (ADI 9.4 cm < cap) keeps its exact value.
     pts = _lumpy()
     fast = ObjectErrors.from_model(pts, np.eye(4)[None], 0.15)
@@ -158,4 +158,4 @@ def test_adi_cap_sample_bound_skips_what_the_sphere_bound_misses():
     assert exact[1] < 0.1 and capped[1] == exact[1]
     for T, value in zip((beyond, below), exact):  # a lower bound: never above the exact value
         M = np.linalg.solve(T, gt)
-        assert not fast._adi_beyond(pts @ M[:3, :3].T + M[:3, 3], value * 1.001)
+        assert not fast._adi_beyond(pts @ M[:3, :3].T + M[:3, 3], fast.samples @ M[:3, :3].T + M[:3, 3], value * 1.001)
