@@ -7,14 +7,22 @@ truncated to N) and a targets file restricted to the images holding them, then t
 ``cosy_lite.eval.evaluator.evaluate`` on it (the best of R runs) and prints a table. When N is
 larger than the number of targets, the test scenes are repeated under new scene ids (a symlinked
 copy of the dataset in a temporary folder), so that exactly N estimates are evaluated.
+
+With ``--phases`` one more run per size splits the time by phase: the evaluator runs serially
+(the errors that normally overlap the rendering on a second thread run inline) with a timer
+around each phase's functions; the phases therefore add up to that run's wall time, not to
+the (overlapped) timed runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import tempfile
 import time
+from collections import defaultdict
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +74,72 @@ def bench_view(src: Path, dst: Path, n: int, split: str = "test") -> Path:
     return dst
 
 
+PHASES = ("load", "depth I/O", "render", "VSD", "MSSD/MSPD", "ADD/ADI", "matching+scores")
+
+
+class _InlineExecutor:
+    """Stands in for the evaluator's thread pool: runs each job at once (serial phase timing)."""
+
+    def __init__(self, *_):
+        pass
+
+    def submit(self, fn, *args) -> Future:
+        f: Future = Future()
+        f.set_result(fn(*args))
+        return f
+
+    def shutdown(self, cancel_futures: bool = False) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def phase_timers(seconds: dict[str, float]):
+    """Wrap the evaluator's functions with wall-clock timers; ``seconds`` gets phase -> s (outermost
+    call only, so nested phases are not counted twice). "load" = the rest (dataset, models, CSV, symmetries,
+    GL set-up, Python glue)."""
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.eval import evaluator, image_errors
+    from cosy_lite.eval.depth_renderer import WindowDepthRenderer
+    from cosy_lite.eval.object_errors import ObjectErrors
+
+    active: list[str] = []
+
+    def timed(phase: str, fn):
+        def wrapper(*a, **k):
+            if active:
+                return fn(*a, **k)
+            active.append(phase)
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                seconds[phase] += time.perf_counter() - t0
+                active.pop()
+        return wrapper
+
+    patches = [
+        (BopDataset, "load_depth", "depth I/O"),
+        (WindowDepthRenderer, "render", "render"),
+        (image_errors, "distance_map", "VSD"),
+        (image_errors.pose_errors, "vsd", "VSD"),
+        (image_errors, "_paste", "VSD"),
+        (ObjectErrors, "mssd_mspd", "MSSD/MSPD"),
+        (ObjectErrors, "add", "ADD/ADI"),
+        (ObjectErrors, "adi", "ADD/ADI"),
+        (evaluator, "score_targets", "matching+scores"),
+    ]
+    saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
+    saved.append((evaluator, "ThreadPoolExecutor", evaluator.ThreadPoolExecutor))
+    try:
+        for obj, name, phase in patches:
+            setattr(obj, name, timed(phase, getattr(obj, name)))
+        evaluator.ThreadPoolExecutor = _InlineExecutor
+        yield seconds
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)
+
+
 def main(argv: list[str] | None = None) -> int:
     from cosy_lite.bop import io
     from cosy_lite.bop.dataset import BopDataset
@@ -76,9 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("dataset", type=Path)
     ap.add_argument("--estimates", type=int, nargs="+", default=[34, 1000])
     ap.add_argument("--repeat", type=int, default=1, help="runs per size; the fastest is reported")
+    ap.add_argument("--phases", action="store_true", help="one more, serial run per size: the time per phase")
     args = ap.parse_args(argv)
     name = BopDataset(args.dataset).name
-    rows = []
+    rows, phase_rows = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.estimates:
             view = bench_view(args.dataset, Path(tmp) / f"view{n}", n)
@@ -96,6 +171,14 @@ def main(argv: list[str] | None = None) -> int:
                 res = evaluate(view, csv, name=name, progress=False)
                 times.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - c0)
+            if args.phases:
+                seconds: dict[str, float] = defaultdict(float)
+                t0 = time.perf_counter()
+                with phase_timers(seconds):
+                    evaluate(view, csv, name=name, progress=False)
+                total = time.perf_counter() - t0
+                seconds["load"] = total - sum(seconds.values())
+                phase_rows.append((n, total, dict(seconds)))
             best = int(np.argmin(times))
             dt = times[best]
             s = res.scores
@@ -110,6 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print(f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[5]:.1f} | {r[6]:.3f} | {r[7]:.3f} "
               f"| {r[8]:.3f} |")
+    if phase_rows:
+        print("\nserial run, wall seconds per phase (share of the serial total):")
+        print("| estimates | " + " | ".join(PHASES) + " | serial total |")
+        print("| --- " * (len(PHASES) + 2) + "|")
+        for n, total, sec in phase_rows:
+            print(f"| {n} | " + " | ".join(f"{sec.get(p, 0.0):.2f} ({100 * sec.get(p, 0.0) / total:.0f} %)"
+                                          for p in PHASES) + f" | {total:.2f} |")
     return 0
 
 

@@ -137,3 +137,25 @@ def test_adi_cap_skips_only_pairs_provably_beyond_it():
     capped = fast.adi(np.stack([near, far]), gt, cap=0.1)
     assert capped[0] == exact[0] and exact[0] < 0.03
     assert capped[1] == np.inf and exact[1] > 0.2
+
+
+def test_adi_cap_sample_bound_skips_what_the_sphere_bound_misses():
+    # 17 cm apart: the bounding-sphere bound (7.6 cm) does not reach the 10 cm cap, the bound from the
+    # exact distances of the sample points does (ADI 11.3 cm): +inf, as a value >= the cap would
+    # score. 15 cm apart (ADI 9.4 cm < cap) keeps its exact value.
+    pts = _lumpy()
+    fast = ObjectErrors.from_model(pts, np.eye(4)[None], 0.15)
+    gt = np.eye(4)
+    gt[2, 3] = 0.8
+    beyond, below = gt.copy(), gt.copy()
+    beyond[0, 3] += 0.17
+    below[0, 3] += 0.15
+    exact = fast.adi(np.stack([beyond, below]), gt)
+    capped = fast.adi(np.stack([beyond, below]), gt, cap=0.1)
+    q = pts - [0.17, 0.0, 0.0]  # GT-posed vertices in the frame of the pose 17 cm away
+    assert np.maximum(np.linalg.norm(q - fast.centre, axis=1) - fast.radius, 0.0).mean() < 0.1 < exact[0]
+    assert capped[0] == np.inf
+    assert exact[1] < 0.1 and capped[1] == exact[1]
+    for T, value in zip((beyond, below), exact):  # a lower bound: never above the exact value
+        M = np.linalg.solve(T, gt)
+        assert not fast._adi_beyond(pts @ M[:3, :3].T + M[:3, 3], fast.samples @ M[:3, :3].T + M[:3, 3], value * 1.001)

@@ -318,3 +318,65 @@ def test_estimates_outside_the_targets_are_ignored(root: Path):
     stray = PoseEstimate(0, 7, 1, 1.0, ests[0].TCO.copy(), 0.1)
     r = _evaluate(root, ests + [stray])
     assert r.n_estimates_in_file == 6 and r.n_estimates_evaluated == 5 and r.scores.ar == 1.0
+
+
+class _InlineExecutor:
+    """The evaluator's pool replaced by one that runs each job at once: every target's model errors
+    are complete before the next target renders (the order of the implementation before the jobs were
+    deferred to the end of the run)."""
+
+    def __init__(self, *_):
+        pass
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        f = Future()
+        f.set_result(fn(*args))
+        return f
+
+    def shutdown(self, cancel_futures: bool = False) -> None:
+        pass
+
+
+def _noisy_estimates(seed: int = 0) -> list[PoseEstimate]:
+    """2-3 estimates per target: GT + noise (up to 20 deg, 15 mm), a far-off one and a tie in score."""
+    from cosy_lite.geometry.transforms import rotation_about_axis
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for e in _gt_estimates():
+        for k in range(2 + int(rng.integers(0, 2))):
+            T = e.TCO.copy()
+            T[:3, :3] = rotation_about_axis(rng.normal(size=3), np.deg2rad(rng.uniform(0, 20))) @ T[:3, :3]
+            T[:3, 3] += rng.normal(scale=0.015 if k < 2 else 0.08, size=3)
+            out.append(PoseEstimate(0, e.im_id, e.obj_id, float(rng.choice([0.3, 0.5, 0.5, 0.9])), T, 0.1))
+    return out
+
+
+def test_deferred_model_errors_give_identical_errors_and_scores(root: Path, monkeypatch):
+    # The pool's MSSD/MSPD/ADD/ADI jobs are awaited once all images are rendered; every error and
+    # score must equal, bit for bit, those of the serial order (each target's errors before the next).
+    from cosy_lite.eval import evaluator
+
+    ests = _noisy_estimates()
+    deferred = _evaluate(root, ests)
+    monkeypatch.setattr(evaluator, "ThreadPoolExecutor", _InlineExecutor)
+    serial = _evaluate(root, ests)
+    assert deferred.n_estimates_evaluated == serial.n_estimates_evaluated == 5  # top inst_count per target
+    for a, b in zip(deferred.targets, serial.targets, strict=True):
+        for name in ("scores", "vsd", "mssd", "mspd", "add", "adi"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert 0.0 < deferred.scores.ar < 1.0
+    assert deferred.to_dict() | {"seconds": 0} == serial.to_dict() | {"seconds": 0}
+
+
+def test_error_in_a_deferred_job_is_raised(root: Path, monkeypatch):
+    from cosy_lite.eval.object_errors import ObjectErrors
+
+    def broken(*_, **__):
+        raise FloatingPointError("adi failed")
+
+    monkeypatch.setattr(ObjectErrors, "adi", broken)
+    with pytest.raises(FloatingPointError, match="adi failed"):
+        _evaluate(root, _gt_estimates())

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,6 +175,7 @@ def evaluate(
     out: list[TargetErrors] = []
     n_eval = 0
     pool = ThreadPoolExecutor(1)  # MSSD/MSPD/ADD/ADI beside the VSD rendering (see ImageErrors.target)
+    pending: list[Future] = []  # their jobs, awaited once every image is rendered
     try:
         bar = tqdm(sorted(by_image.items()), desc="eval", unit="im", disable=not progress)
         for (scene_id, im_id), im_targets in bar:
@@ -189,15 +190,18 @@ def evaluate(
             for t in im_targets:
                 ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
                 gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
-                pair = image.target(t.obj_id, objs[t.obj_id], ests, [rec.gt[i].TCO for i in gt_idx], gt_idx)
+                pair = image.target(t.obj_id, objs[t.obj_id], ests, [rec.gt[i].TCO for i in gt_idx], gt_idx,
+                                    pending)
                 gt_valid = valid_gt(np.array([rec.gt_info[i].visib_fract for i in gt_idx]), t.inst_count, visib_gt_min)
                 out.append(TargetErrors(scene_id, im_id, t.obj_id, t.inst_count,
                                         np.array([e.score for e in ests], dtype=np.float64), gt_valid,
                                         pair.vsd, pair.mssd, pair.mspd, pair.add, pair.adi))
                 n_eval += len(ests)
             bar.set_postfix(estimates=n_eval, refresh=False)
+        for job in pending:  # errors filled in place into ``out``; re-raises a job's exception
+            job.result()
     finally:
-        pool.shutdown()
+        pool.shutdown(cancel_futures=True)
         for r in renderers.values():
             r.close()
     scores = score_targets(out, {o: d.diameter for o, d in objs.items()}, im_width, symmetric)

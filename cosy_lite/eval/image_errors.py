@@ -16,7 +16,7 @@ compared with every GT instance of that object, as bop_toolkit ``eval_calc_error
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Callable
 
@@ -119,11 +119,14 @@ class ImageErrors:
         return self._rendered[key]
 
     def target(self, obj_id: int, obj: ObjectErrors, ests: list[PoseEstimate], gt_TCO: list[np.ndarray],
-               gt_keys: list[int]) -> PairErrors:
+               gt_keys: list[int], pending: list[Future] | None = None) -> PairErrors:
         """Errors of ``ests`` (E, evaluated order) against GT poses ``gt_TCO`` (G; ``gt_keys``: their GT indices).
 
         MSSD, MSPD, ADD and ADI run on ``executor`` (if given) while VSD renders here: the k-d tree
-        and large numpy products release the GIL, so the two overlap on a second core.
+        and large numpy products release the GIL, so the two overlap on a second core. With
+        ``pending``, their job is appended to it instead of awaited: the returned ``mssd``, ``mspd``,
+        ``add``, ``adi`` are complete only once the caller has waited for it (``Future.result``),
+        so that one target's slow model errors overlap the next targets' rendering.
         """
         E, G = len(ests), len(gt_TCO)
         out = PairErrors.missing(E, G)
@@ -139,7 +142,10 @@ class ImageErrors:
                 if pose_errors.sphere_projections_overlap(radius, T_est[e, :3, 3], T_gt[:3, 3]):
                     out.vsd[e, g] = self._vsd(obj_id, obj, ("est", obj_id, e), T_est[e], ("gt", gkey), T_gt)
         if job is not None:
-            job.result()
+            if pending is None:
+                job.result()
+            else:
+                pending.append(job)
         return out
 
     def _vsd(self, obj_id: int, obj: ObjectErrors, key_e, T_e, key_g, T_g) -> np.ndarray:
