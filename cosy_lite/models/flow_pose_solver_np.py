@@ -1,19 +1,8 @@
 """The pose update of a flow refiner, numpy twin of :mod:`cosy_lite.models.flow_pose_solver` (for the
-onnxruntime path, :mod:`cosy_lite.inference.iterate_np`; no torch). Same algorithm, same constants,
-equal results (tests/test_flow_refiner.py).
-
-The flow network (:class:`~cosy_lite.models.flow_pose_net.FlowPoseNet`) says, for each stride-``s``
-cell of the rendering, where that surface point is in the image crop (``flow [B,2,h,w]``, crop
-pixels) and how sure it is (``confidence [B,h,w]``). The rendering's depth at the cell centre gives
-the point in 3D at the current pose, so every cell is a 2D-3D correspondence; the new pose is the
-weighted least-squares fit of those correspondences (perspective-n-point):
-
-    min over (dR, t)   sum_cells  w * huber(| project(K_crop, dR (X - t_in) + t) - (uv + flow) |)
-
-with ``X`` the cell's 3D point (camera frame, current pose), rotation about the object origin
-(``R_new = dR R_in``, as :mod:`cosy_lite.models.pose_update`), solved by damped Gauss-Newton from
-the current pose. Items with fewer than :data:`MIN_CELLS` rendered cells, or a non-finite or
-degenerate solution, keep their input pose. The constants below are the torch solver's too.
+onnxruntime path, :mod:`cosy_lite.inference.iterate_np`; no torch): robust Gauss-Newton PnP of the
+rendering's cells (3D from its depth) to their flow targets, rotation about the object origin. The
+algorithm, its fallbacks (too few confident cells, a non-finite solution: the input pose is kept) and
+the constants below are the torch solver's; the results are equal (tests/test_flow_refiner.py).
 """
 
 from __future__ import annotations
