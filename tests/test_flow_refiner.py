@@ -150,6 +150,9 @@ def test_network_shapes_training_step_and_onnx(tmp_path):
     out = net(x)
     assert out.shape == (2, 3, H // S, W // S) and ((out[:, 2] >= 0) & (out[:, 2] <= 1)).all()
     assert net(x, cost_volume=True).shape == (2, 25, H // S, W // S)
+    net.zero_grad()
+    net(x, cost_volume=True).sum().backward()  # DDP needs a gradient for every parameter
+    assert [n for n, p in net.named_parameters() if p.grad is None] == []
     with pytest.raises(ValueError, match="divisible by 16"):
         net(torch.rand(1, 6, 90, 120))
     path = tmp_path / "flow.onnx"
