@@ -169,6 +169,8 @@ def test_config_checks_name_the_field(tiny_synth_root):
         build_pose_net(PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[90, 120]))
     with pytest.raises(ConfigError, match=r"\[net.backbone\]"):
         build_pose_net(PoseNetConfig(arch="flow", backbone="resnet18"))
+    with pytest.raises(ConfigError, match=r"\[net.corr_radius\]"):
+        build_pose_net(PoseNetConfig(arch="flow", backbone="efficientnet_lite0", corr_radius=0))
     from cosy_lite.config import load_config
     from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
 

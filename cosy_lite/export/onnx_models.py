@@ -27,11 +27,12 @@ import numpy as np
 from cosy_lite.export.manifest import (
     POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, ModelEntry, OnnxModelError, parse_json_meta,
 )
+from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE
 
 PROVIDERS = ("CPUExecutionProvider",)
 MASK_THRESHOLD = 0.5  # mask probability -> bool (as cosy_lite.models.detector)
 POSE_OUTPUTS = 9
-FLOW_CHANNELS, FLOW_STRIDE = 3, 8  # a flow refiner's output [B,3,h/8,w/8] (models.flow_pose_net; no torch here)
+FLOW_CHANNELS = 3  # a flow refiner's output [B,3,h/stride,w/stride]: dx, dy, confidence
 
 
 def session_options(threads: int | None = None, spinning: bool = False) -> Any:

@@ -19,7 +19,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cosy_lite.geometry.crops_np import crop_boxes, crop_image, crop_intrinsics
-from cosy_lite.models.flow_pose_solver_np import pose_from_flow
+from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE, pose_from_flow
 from cosy_lite.models.pose_update_np import apply_pose_update
 
 Size = tuple[int, int]
@@ -59,9 +59,6 @@ def make_inputs(image: np.ndarray, K: np.ndarray, TCO: np.ndarray, obj_ids: Sequ
     images[:, 3:] = rendered.rgb.transpose(0, 3, 1, 2)  # [B,h,w,3] uint8
     images[:, 3:] /= np.float32(255.0)
     return NetInputs(images, K_crop, boxes, rendered.depth)
-
-
-FLOW_STRIDE = 8  # cosy_lite.models.flow_pose_net.FlowPoseNet.stride (not imported: no torch here)
 
 
 def updated_poses(TCO: np.ndarray, inp: NetInputs, out: np.ndarray, output: str = "delta") -> np.ndarray:

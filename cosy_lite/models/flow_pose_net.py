@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE
 from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD
 
 TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16
@@ -72,7 +73,7 @@ class FlowPoseNet(nn.Module):
     """
 
     output = "flow"  # what forward returns: the render-and-compare loop solves the pose from it
-    stride = 8
+    stride = FLOW_STRIDE
 
     def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
                  radius: int = 4, descriptor: int = 64, temperature: float = 0.05):

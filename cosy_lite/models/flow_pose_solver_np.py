@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+FLOW_STRIDE = 8  # px per cell of the flow field (FlowPoseNet.stride; here so that numpy-only code has it)
 MIN_CELLS = 6  # correspondences needed for a pose (6 unknowns)
 GN_ITERATIONS = 10
 HUBER_PX = 2.0  # crop pixels: residuals beyond weigh 1/|r|

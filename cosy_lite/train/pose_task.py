@@ -117,9 +117,11 @@ def check_net_config(cfg: PoseNetConfig) -> None:
     if cfg.arch in PRETRAINED_ARCHS and cfg.backbone not in WEIGHTS:
         raise ConfigError("network config", "net.backbone", f"net.arch={cfg.arch} needs a pretrained trunk, one of "
                           f"{sorted(WEIGHTS)}; got {cfg.backbone!r} (torchvision backbones: net.arch=early)")
-    if cfg.arch == "flow" and (cfg.crop_resolution[0] % 16 or cfg.crop_resolution[1] % 16 or cfg.corr_radius < 1):
-        raise ConfigError("network config", "net.crop_resolution", f"net.arch=flow needs crops divisible by 16 and "
-                          f"net.corr_radius >= 1, got {list(cfg.crop_resolution)} and {cfg.corr_radius}")
+    if cfg.arch == "flow" and (cfg.crop_resolution[0] % 16 or cfg.crop_resolution[1] % 16):
+        raise ConfigError("network config", "net.crop_resolution", f"net.arch=flow needs crops divisible by 16, "
+                          f"got {list(cfg.crop_resolution)}")
+    if cfg.arch == "flow" and cfg.corr_radius < 1:
+        raise ConfigError("network config", "net.corr_radius", f"net.arch=flow needs >= 1 cell, got {cfg.corr_radius}")
     if cfg.arch == "early" and cfg.backbone not in BACKBONES:
         raise ConfigError("network config", "net.backbone", f"net.arch=early needs one of {sorted(BACKBONES)}, "
                           f"got {cfg.backbone!r} (pretrained trunks: net.arch=siamese)")
