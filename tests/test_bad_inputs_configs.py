@@ -189,3 +189,20 @@ def test_reporter_names_a_bad_file_read_in_a_data_loading_worker(capsys):
     assert run_reporting_errors(read_all, "train.py") == 2
     _one_error(capsys.readouterr().err, "train.py: error: /data/train_pbr/000000/rgb/000000.png: cannot decode image",
                "(in a data loading worker)")
+
+
+@pytest.mark.parametrize("model", ["refiner", "detector"])
+def test_train_py_on_a_dataset_smaller_than_the_held_out_set(tmp_path, capsys, model):
+    """A user's own small dataset (6 images) with the default data.val_images=20: one line naming the
+    setting and the split folder, not a traceback from the splitter."""
+    import train
+    from cosy_lite.synth.generator import SynthConfig, generate
+
+    root = tmp_path / "tiny"
+    generate(load_config(SynthConfig, ROOT / "configs" / "synth" / "tiny.yaml",
+                         ["train.n_images=6", "train.views_per_layout=6", "test.n_images=1", "test.views_per_layout=1"]),
+             root, progress=False)
+    rc = train.main(["--dataset", str(root), "--model", model, "--out", str(tmp_path / "run"), "loop.steps=1"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    _one_error(err, "[data.val_images]", "20 images held out", f"{root / 'train_pbr'} has only 6", "N < 6")

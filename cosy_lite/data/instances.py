@@ -14,7 +14,7 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import BopDataset
-from cosy_lite.errors import BopFormatError
+from cosy_lite.errors import BopFormatError, ConfigError
 
 
 @dataclass
@@ -164,3 +164,21 @@ def split_train_val(dataset: D, val_fraction: float | None = None, n_val_images:
     val = {keys[i] for i in order[:n_val]}
     train = set(keys) - val
     return dataset.select_images(train), dataset.select_images(val)
+
+
+def hold_out_images(dataset: D, n_val_images: int, seed: int, split_dir: str) -> tuple[D, D]:
+    """:func:`split_train_val` for a training command: too few images is a :class:`ConfigError`.
+
+    The message names ``data.val_images`` and the split folder (``split_dir``), so that a user with a
+    small dataset of their own learns which setting to lower instead of reading a traceback.
+    """
+    n_images = len(set(dataset.image_keys()))
+    if n_images == 0:
+        raise ConfigError(split_dir, "", "no image of this split has a usable instance (check the "
+                          "objects, data.min_visib_fract and the split's scene_gt*.json)")
+    if not 0 <= n_val_images < n_images:
+        raise ConfigError("config", "data.val_images",
+                          f"{n_val_images} images held out for validation, but {split_dir} has only "
+                          f"{n_images} usable image(s); set data.val_images=N with N < {n_images} "
+                          f"(at least one image must remain for training)")
+    return split_train_val(dataset, n_val_images=n_val_images, seed=seed)

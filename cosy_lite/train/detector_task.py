@@ -35,7 +35,7 @@ from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections, ImageKey
 from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
 from cosy_lite.data.detection_dataset import DetectionDataset
-from cosy_lite.data.instances import load_masks, split_train_val
+from cosy_lite.data.instances import hold_out_images, load_masks
 from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap, detect, detector_losses
 from cosy_lite.structures import DetectionBatch, DetectionSample
 from cosy_lite.train.checkpoint import CheckpointError, load_checkpoint
@@ -223,7 +223,7 @@ class DetectorTask:
         self.augment = StrongAugmentation(cfg.augmentation)
         full = DetectionDataset(self.dataset, cfg.data.split, label_map={o: self.label_map.label(o) for o in obj_ids},
                                 min_visib_fract=cfg.data.min_visib_fract, min_area_px=cfg.data.min_area_px)
-        train, val = split_train_val(full, n_val_images=cfg.data.val_images, seed=cfg.loop.seed)
+        train, val = hold_out_images(full, cfg.data.val_images, cfg.loop.seed, str(self.dataset.root / cfg.data.split))
         self._train_set = MasksAnyDataset(train)
         self.val_keys: list[ImageKey] = sorted(val.image_keys())
 

@@ -235,14 +235,15 @@ class PoseTask:
 
     # ------------------------------------------------------------------ data
     def _split(self):
-        from cosy_lite.data.instances import split_train_val
+        from cosy_lite.data.instances import hold_out_images
         from cosy_lite.data.pose_dataset import PoseDataset
 
         full = PoseDataset(self.dataset, self.cfg.data.split, obj_ids=self.objects.obj_ids,
                            min_visib_fract=self.cfg.data.min_visib_fract)
         if self.cfg.data.cache_images:
             full.cache_images()
-        return split_train_val(full, n_val_images=self.cfg.data.val_images, seed=self.cfg.loop.seed)
+        return hold_out_images(full, self.cfg.data.val_images, self.cfg.loop.seed,
+                               str(self.dataset.root / self.cfg.data.split))
 
     @property
     def renderer(self):
