@@ -12,6 +12,10 @@ With ``--phases`` one more run per size splits the time by phase: the evaluator 
 (the errors that normally overlap the rendering on a second thread run inline) with a timer
 around each phase's functions; the phases therefore add up to that run's wall time, not to
 the (overlapped) timed runs.
+
+Each size is timed twice, alternating within each repeat: ``bop19`` (the default evaluation: VSD,
+MSSD, MSPD, as the toolkit's BOP19) and ``+auc`` (``cosy-lite eval --auc``: also ADD and ADI for
+the YCB-V AUC). ``--variants`` restricts that.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 REPEAT_SCENE_OFFSET = 1000  # repeated scenes get ids scene_id + k * 1000
+VARIANTS = {"bop19": False, "+auc": True}  # name -> evaluate(auc=...)
 
 
 def noisy_estimates(ds, n: int, seed: int = 0, split: str = "test"):
@@ -151,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--estimates", type=int, nargs="+", default=[34, 1000])
     ap.add_argument("--repeat", type=int, default=1, help="runs per size; the fastest is reported")
     ap.add_argument("--phases", action="store_true", help="one more, serial run per size: the time per phase")
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+                    help="bop19: VSD, MSSD, MSPD (the default evaluation); +auc: also ADD, ADI (eval --auc)")
     args = ap.parse_args(argv)
     name = BopDataset(args.dataset).name
     rows, phase_rows = [], []
@@ -165,40 +172,46 @@ def main(argv: list[str] | None = None) -> int:
                 [t for t in ds.test_targets() if (t.scene_id, t.im_id) in images]))
             csv = Path(tmp) / results_filename("bench", name, "test")
             write_results_csv(csv, ests)
-            times, cpus = [], []
-            for _ in range(args.repeat):
-                t0, c0 = time.perf_counter(), time.process_time()
-                res = evaluate(view, csv, name=name, progress=False)
-                times.append(time.perf_counter() - t0)
-                cpus.append(time.process_time() - c0)
-            if args.phases:
+            times: dict[str, list[float]] = defaultdict(list)
+            cpus: dict[str, list[float]] = defaultdict(list)
+            results = {}
+            for _ in range(args.repeat):  # variants alternate: A and B see the same load
+                for v in args.variants:
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    results[v] = evaluate(view, csv, name=name, progress=False, auc=VARIANTS[v])
+                    times[v].append(time.perf_counter() - t0)
+                    cpus[v].append(time.process_time() - c0)
+            for v in args.variants if args.phases else []:
                 seconds: dict[str, float] = defaultdict(float)
                 t0 = time.perf_counter()
                 with phase_timers(seconds):
-                    evaluate(view, csv, name=name, progress=False)
+                    evaluate(view, csv, name=name, progress=False, auc=VARIANTS[v])
                 total = time.perf_counter() - t0
                 seconds["load"] = total - sum(seconds.values())
-                phase_rows.append((n, total, dict(seconds)))
-            best = int(np.argmin(times))
-            dt = times[best]
-            s = res.scores
-            rows.append((res.n_estimates_evaluated, len(images), times[0], dt, cpus[best], 1000 * dt / len(ests),
-                         s.ar_vsd, s.ar_mssd, s.ar_mspd))
+                phase_rows.append((n, v, total, dict(seconds)))
+            for v in args.variants:
+                best = int(np.argmin(times[v]))
+                dt = times[v][best]
+                res = results[v]
+                s = res.scores
+                auc = f"{s.auc_add_s:.3f}" if s.auc_add_s is not None else "-"
+                rows.append((res.n_estimates_evaluated, v, len(images), times[v][0], dt, cpus[v][best],
+                             1000 * dt / len(ests), s.ar_vsd, s.ar_mssd, s.ar_mspd, auc))
     print(f"dataset {args.dataset} (test split); GT + noise (<=10 deg, 5 mm sigma), 1 estimate per target; "
           f"best of {args.repeat} run(s); the first run of the process also imports trimesh/pyrender/OpenGL; "
           f"CPU = process CPU time of the best run (all threads); load average {os.getloadavg()[0]:.1f}")
-    print("| estimates | images | first run (s) | best (s) | CPU (s) | ms/estimate (best) "
-          "| AR_VSD | AR_MSSD | AR_MSPD |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| estimates | variant | images | first run (s) | best (s) | CPU (s) | ms/estimate (best) "
+          "| AR_VSD | AR_MSSD | AR_MSPD | AUC ADD(-S) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
-        print(f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[5]:.1f} | {r[6]:.3f} | {r[7]:.3f} "
-              f"| {r[8]:.3f} |")
+        print(f"| {r[0]} | {r[1]} | {r[2]} | {r[3]:.2f} | {r[4]:.2f} | {r[5]:.2f} | {r[6]:.1f} | {r[7]:.3f} "
+              f"| {r[8]:.3f} | {r[9]:.3f} | {r[10]} |")
     if phase_rows:
         print("\nserial run, wall seconds per phase (share of the serial total):")
-        print("| estimates | " + " | ".join(PHASES) + " | serial total |")
-        print("| --- " * (len(PHASES) + 2) + "|")
-        for n, total, sec in phase_rows:
-            print(f"| {n} | " + " | ".join(f"{sec.get(p, 0.0):.2f} ({100 * sec.get(p, 0.0) / total:.0f} %)"
+        print("| estimates | variant | " + " | ".join(PHASES) + " | serial total |")
+        print("| --- " * (len(PHASES) + 3) + "|")
+        for n, v, total, sec in phase_rows:
+            print(f"| {n} | {v} | " + " | ".join(f"{sec.get(p, 0.0):.2f} ({100 * sec.get(p, 0.0) / total:.0f} %)"
                                           for p in PHASES) + f" | {total:.2f} |")
     return 0
 

@@ -150,12 +150,34 @@ def _evaluate(root: Path, ests: list[PoseEstimate], **kwargs):
 
 
 def test_gt_as_estimate_scores_one(root: Path):
-    r = _evaluate(root, _gt_estimates())
+    r = _evaluate(root, _gt_estimates(), auc=True)
     s = r.scores
     assert (s.ar, s.ar_vsd, s.ar_mssd, s.ar_mspd) == (1.0, 1.0, 1.0, 1.0)
     assert s.n_targets == 5 and r.n_estimates_evaluated == 5 and r.im_width == 640
     assert s.auc_add_s == pytest.approx(1.0) and s.auc_adi == pytest.approx(1.0)
     assert sorted(s.per_object) == [1, 2] and s.per_object[1].n_targets == 3
+
+
+def test_the_auc_is_computed_only_when_asked_and_changes_no_bop19_score(root: Path):
+    # BOP19 (the default, as the toolkit) has no ADD/ADI: the AUC is None, in the JSON null and "-" in
+    # the table; every AR equals the run with the AUC, on estimates off by 1-3 cm and 5-20 deg.
+    from cosy_lite.eval.command import format_table
+    from cosy_lite.geometry.transforms import rotation_about_axis
+
+    ests = _gt_estimates()
+    for k, e in enumerate(ests):
+        e.TCO[:3, :3] = e.TCO[:3, :3] @ rotation_about_axis(np.array([1.0, 1.0, 0.0]) / np.sqrt(2), np.deg2rad(5 + 4 * k))
+        e.TCO[:3, 3] += [0.01 * (k % 3), 0.0, 0.01]
+    plain, full = _evaluate(root, ests), _evaluate(root, ests, auc=True)
+    assert plain.scores.auc_add_s is None and plain.scores.auc_adi is None
+    assert all(x.auc_add_s is None for x in plain.scores.per_object.values())
+    assert 0.0 < full.scores.auc_add_s < 1.0 and 0.0 < plain.scores.ar < 1.0
+    for k in ("ar", "ar_vsd", "ar_mssd", "ar_mspd"):
+        assert getattr(plain.scores, k) == getattr(full.scores, k), k
+    d = plain.to_dict()
+    assert d["auc_add_s"] is None and d["per_object"]["1"]["auc_adi"] is None
+    row = [line for line in format_table(plain).splitlines() if line.split()[:1] == ["all"]][0]
+    assert row.split()[-2:] == ["-", "-"]
 
 
 def test_missing_estimate_lowers_recall_by_its_share(root: Path):
@@ -290,7 +312,7 @@ def test_auc_of_add_s_uses_adi_for_objects_with_symmetries(root: Path):
     for e in ests:
         if e.obj_id == 2:
             e.TCO[:3, :3] = e.TCO[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    s = _evaluate(root, ests).scores
+    s = _evaluate(root, ests, auc=True).scores
     assert s.per_object[2].auc_add_s == pytest.approx(1.0) and s.per_object[2].auc_adi == pytest.approx(1.0)
     assert s.per_object[1].auc_add_s == pytest.approx(1.0)
 
@@ -375,8 +397,10 @@ def test_error_in_a_deferred_job_is_raised(root: Path, monkeypatch):
     from cosy_lite.eval.object_errors import ObjectErrors
 
     def broken(*_, **__):
-        raise FloatingPointError("adi failed")
+        raise FloatingPointError("model errors failed")
 
-    monkeypatch.setattr(ObjectErrors, "adi", broken)
-    with pytest.raises(FloatingPointError, match="adi failed"):
-        _evaluate(root, _gt_estimates())
+    for method, auc in (("mssd_mspd", False), ("adi", True)):
+        with monkeypatch.context() as m:
+            m.setattr(ObjectErrors, method, broken)
+            with pytest.raises(FloatingPointError, match="model errors failed"):
+                _evaluate(root, _gt_estimates(), auc=auc)

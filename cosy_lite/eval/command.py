@@ -29,6 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", default="6d-localization", choices=["6d-localization", "6d-detection"],
                    help="6d-localization: BOP19 AR (VSD, MSSD, MSPD) over test_targets_bop19.json; 6d-detection: "
                         "BOP 2024/2025 mAP (MSSD, MSPD; bop24_mAP, bop25_mAP) over test_targets_bop24.json")
+    p.add_argument("--auc", action="store_true",
+                   help="also compute ADD and ADI and report the YCB-V AUC of ADD(-S) and of ADI (PoseCNN's "
+                        "metric, not part of BOP19; about 40 %% more time)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -42,9 +45,13 @@ def format_table(result) -> str:
     lines = [f"{result.dataset} / {result.split}: {result.n_estimates_evaluated} of {result.n_estimates_in_file} "
              f"estimates evaluated, {s.n_targets} targets, {result.seconds:.1f} s", head, "-" * len(head)]
     rows = [(str(o), x) for o, x in s.per_object.items()] + [("all", s)]
+
+    def auc(v: float | None, width: int) -> str:  # "-": not computed (cosy-lite eval without --auc)
+        return f"{v:{width}.4f}" if v is not None else f"{'-':>{width}}"
+
     for label, x in rows:
         lines.append(f"{label:>8} {x.n_targets:>8} {x.n_estimates:>6} {x.ar:7.4f} {x.ar_vsd:7.4f} {x.ar_mssd:7.4f} "
-                     f"{x.ar_mspd:7.4f} {x.auc_add_s:11.4f} {x.auc_adi:7.4f}")
+                     f"{x.ar_mspd:7.4f} {auc(x.auc_add_s, 11)} {auc(x.auc_adi, 7)}")
 
     def curve(name: str, thresholds, recalls) -> str:
         return f"{name:<27}" + " ".join(f"{t:>5.3g}" for t in thresholds) + f"\n{'  recall':<27}" + " ".join(
@@ -125,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
     if task == "6d-detection":
         return _run_6d_detection(args, root)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
-                      args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress)
+                      args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
+                      auc=getattr(args, "auc", False))
     print(format_table(result))
     out = args.out or args.results.with_name(args.results.stem + "_eval")
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")

@@ -10,8 +10,9 @@ compared with every GT instance of that object, as bop_toolkit ``eval_calc_error
   which holds every pixel where either model is rendered, so the result equals a full-image VSD.
 * **MSSD** is +inf where the bounding spheres do not overlap (``||t_e - t_g|| >= diameter``), as
   the toolkit; **MSPD** is always computed, as the toolkit. **ADD, ADI** only feed the YCB-V AUC
-  (PoseCNN's, without the toolkit's shortcut): ADD is always computed, ADI too unless it is
-  provably >= 10 cm (then +inf: such errors add nothing to the AUC and are never matched).
+  (PoseCNN's, without the toolkit's shortcut) and are computed only when it is asked for
+  (``add_adi``; not part of BOP19, +inf otherwise): ADD always, ADI unless it is provably >= 10 cm
+  (then +inf: such errors add nothing to the AUC and are never matched).
 """
 
 from __future__ import annotations
@@ -68,12 +69,14 @@ def mssd_mspd_errors(obj: ObjectErrors, T_est: np.ndarray, T_gt: np.ndarray, K: 
 
 
 def _model_errors(obj: ObjectErrors, T_est: np.ndarray, gt_TCO: list[np.ndarray], K: np.ndarray,
-                  out: PairErrors) -> None:
-    """Fill ``out.mssd``, ``mspd``, ``add``, ``adi`` (in place) of estimates ``T_est`` [E,4,4] x ``gt_TCO`` (G)."""
+                  out: PairErrors, add_adi: bool = True) -> None:
+    """Fill ``out.mssd``, ``mspd`` and, with ``add_adi``, ``add``, ``adi`` (in place) of estimates
+    ``T_est`` [E,4,4] x ``gt_TCO`` (G)."""
     for g, T_gt in enumerate(gt_TCO):
         out.mssd[:, g], out.mspd[:, g] = mssd_mspd_errors(obj, T_est, T_gt, K)
-        out.add[:, g] = obj.add(T_est, T_gt)
-        out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
+        if add_adi:
+            out.add[:, g] = obj.add(T_est, T_gt)
+            out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
 
 
 def _paste(dist: np.ndarray, src: Window, dst: Window) -> np.ndarray:
@@ -93,12 +96,14 @@ class ImageErrors:
         load_depth: ``() -> [H,W]`` test depth (m, 0 = no measurement); called when VSD first needs it.
         K: [3,3] intrinsics; delta: VSD visibility tolerance (m).
         executor: where the errors that need no rendering run (e.g. a one-thread pool), or None.
+        add_adi: also compute ADD and ADI (for the YCB-V AUC); else they stay +inf.
     """
 
     def __init__(self, renderer: WindowDepthRenderer, load_depth: Callable[[], np.ndarray], K: np.ndarray,
-                 delta: float, executor: Executor | None = None):
+                 delta: float, executor: Executor | None = None, add_adi: bool = True):
         self.renderer = renderer
         self.executor = executor
+        self.add_adi = add_adi
         self._load_depth = load_depth
         self._depth: np.ndarray | None = None
         self.K = np.asarray(K, dtype=np.float64)
@@ -133,9 +138,10 @@ class ImageErrors:
         if E == 0 or G == 0:
             return out
         T_est = np.stack([e.TCO for e in ests])
-        job = self.executor.submit(_model_errors, obj, T_est, gt_TCO, self.K, out) if self.executor else None
+        job = (self.executor.submit(_model_errors, obj, T_est, gt_TCO, self.K, out, self.add_adi)
+               if self.executor else None)
         if job is None:
-            _model_errors(obj, T_est, gt_TCO, self.K, out)
+            _model_errors(obj, T_est, gt_TCO, self.K, out, self.add_adi)
         radius = 0.5 * obj.diameter
         for g, (T_gt, gkey) in enumerate(zip(gt_TCO, gt_keys)):
             for e in range(E):

@@ -160,8 +160,8 @@ class ObjectScores(_AverageRecalls):
     recall_vsd: np.ndarray  # [T,Theta]
     recall_mssd: np.ndarray  # [10]
     recall_mspd: np.ndarray  # [10]
-    auc_add_s: float  # ADD, or ADI for symmetric objects
-    auc_adi: float
+    auc_add_s: float | None  # ADD, or ADI for symmetric objects (None: not computed)
+    auc_adi: float | None
 
 
 @dataclass
@@ -174,8 +174,8 @@ class Scores(_AverageRecalls):
     recall_mssd: np.ndarray  # [10] at MSSD_THRESHOLDS x diameter
     recall_mspd: np.ndarray  # [10] at MSPD_THRESHOLDS_PX x width/640
     mspd_thresholds_px: np.ndarray  # [10] after the width scaling
-    auc_add_s: float
-    auc_adi: float
+    auc_add_s: float | None  # None: ADD/ADI not computed (BOP19 proper has no AUC)
+    auc_adi: float | None
     per_object: dict[int, ObjectScores] = field(default_factory=dict)
 
 
@@ -184,7 +184,8 @@ def _recall(tps: np.ndarray, n: int) -> np.ndarray:
 
 
 def score_targets(
-    targets: list[TargetErrors], diameters: dict[int, float], im_width: int, symmetric_obj_ids: tuple[int, ...] = ()
+    targets: list[TargetErrors], diameters: dict[int, float], im_width: int, symmetric_obj_ids: tuple[int, ...] = (),
+    auc: bool = True,
 ) -> Scores:
     """Recalls, AR and AUC over BOP19 targets.
 
@@ -193,6 +194,8 @@ def score_targets(
         diameters: obj_id -> model diameter (m) for the MSSD thresholds.
         im_width: test image width (px); MSPD thresholds are scaled by ``im_width / 640``.
         symmetric_obj_ids: objects scored with ADI in the AUC of ADD(-S).
+        auc: score the AUC of ADD(-S) and of ADI (the targets' ``add``/``adi`` were computed); else
+            ``auc_add_s`` and ``auc_adi`` are None.
     """
     mspd_th = MSPD_THRESHOLDS_PX * (im_width / 640.0)  # reported; matching uses normalised errors
     mspd_factor = 640.0 / im_width if im_width > 0 else 1.0
@@ -217,27 +220,28 @@ def score_targets(
         else:
             tp[o]  # noqa: B018 (creates the zero entry)
         valid_idx = np.nonzero(t.gt_valid)[0]
-        for name, errs in (("add_s", t.adi if o in symmetric_obj_ids else t.add), ("adi", t.adi)):
+        for name, errs in () if not auc else (("add_s", t.adi if o in symmetric_obj_ids else t.add), ("adi", t.adi)):
             m = match_greedy(errs, t.gt_valid, [AUC_MAX_M])[0]  # errors >= 10 cm add nothing to the AUC
             auc_err[name][o] += [float(errs[m[g], g]) if m[g] >= 0 else np.inf for g in valid_idx]
+
+    def auc_of(errors: list[float]) -> float | None:
+        return auc_threshold_curve(np.array(errors)) if auc else None
 
     per_object = {}
     for o in sorted(tp):
         per_object[o] = ObjectScores(
             o, n_gt[o], n_est[o], _recall(tp[o]["vsd"], n_gt[o]).reshape(T, Th), _recall(tp[o]["mssd"], n_gt[o]),
-            _recall(tp[o]["mspd"], n_gt[o]), auc_threshold_curve(np.array(auc_err["add_s"][o])),
-            auc_threshold_curve(np.array(auc_err["adi"][o])),
+            _recall(tp[o]["mspd"], n_gt[o]), auc_of(auc_err["add_s"][o]), auc_of(auc_err["adi"][o]),
         )
     n_all = sum(n_gt.values())
     tot = zeros()
     for o in tp:
         for k in tot:
             tot[k] += tp[o][k]
-    all_err = {k: np.array([e for o in v for e in v[o]]) for k, v in auc_err.items()}
+    all_err = {k: [e for o in v for e in v[o]] for k, v in auc_err.items()}
     return Scores(
         n_all, sum(n_est.values()), _recall(tot["vsd"], n_all).reshape(T, Th), _recall(tot["mssd"], n_all),
-        _recall(tot["mspd"], n_all), mspd_th, auc_threshold_curve(all_err["add_s"]),
-        auc_threshold_curve(all_err["adi"]), per_object,
+        _recall(tot["mspd"], n_all), mspd_th, auc_of(all_err["add_s"]), auc_of(all_err["adi"]), per_object,
     )
 
 
