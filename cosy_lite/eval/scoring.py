@@ -219,8 +219,10 @@ def score_targets(
             tp[o]["mspd"] += (match_greedy(t.mspd * mspd_factor, t.gt_valid, MSPD_THRESHOLDS_PX) >= 0).sum(axis=1)
         else:
             tp[o]  # noqa: B018 (creates the zero entry)
+        if not auc:
+            continue
         valid_idx = np.nonzero(t.gt_valid)[0]
-        for name, errs in () if not auc else (("add_s", t.adi if o in symmetric_obj_ids else t.add), ("adi", t.adi)):
+        for name, errs in (("add_s", t.adi if o in symmetric_obj_ids else t.add), ("adi", t.adi)):
             m = match_greedy(errs, t.gt_valid, [AUC_MAX_M])[0]  # errors >= 10 cm add nothing to the AUC
             auc_err[name][o] += [float(errs[m[g], g]) if m[g] >= 0 else np.inf for g in valid_idx]
 

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(1, str(Path(__file__).parents[1] / "2026-12-01"))  # ramdata.py (the RAM cache of train_pbr)
 from ramdata import RamBatcher, load_split, make_split  # noqa: E402
 
 from cosy_lite.geometry.crops import crop_boxes, crop_images  # noqa: E402

@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(1, str(Path(__file__).parents[1] / "2026-12-01"))  # ramdata.py (the RAM cache of train_pbr)
 from ramdata import RamBatcher, load_split, make_split  # noqa: E402
 
 from cosy_lite.inference.loaders import load_pose_model  # noqa: E402
@@ -64,7 +65,7 @@ def main():
             print(name, k, {a: round(b, 3) for a, b in d.items()}, flush=True)
             for n_sub in (64, 128):
                 if len(T) > n_sub:
-                    sub = PoseErrors_sub = type(e)(*(x[:n_sub] for x in (e.rot_deg, e.trans_m, e.adds_m, e.mssd_m)))
+                    sub = type(e)(*(x[:n_sub] for x in (e.rot_deg, e.trans_m, e.adds_m, e.mssd_m)))
                     report[f"{name}/{k}/first{n_sub}"] = sub.summary(diam[:n_sub], "")
                     print("   first", n_sub, {a: round(b, 3) for a, b in report[f"{name}/{k}/first{n_sub}"].items()})
     from cosy_lite.train.checkpoint import load_checkpoint

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(1, str(Path(__file__).parents[1] / "2026-12-01"))  # ramdata.py (the RAM cache of train_pbr)
 from ramdata import RamBatcher, load_split, make_split  # noqa: E402
 from coarsecls import random_rotations, ray_rotation  # noqa: E402
 
