@@ -32,6 +32,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
     ap.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
+    ap.add_argument("--start", default="coarse", choices=["coarse", "templates"],
+                    help="start poses: coarse (box pose -> the coarse network, CosyPose) or templates (the detection "
+                         "mask matched against rendered silhouettes; no coarse network needed)")
+    ap.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
+                    help="--start templates: keep the rendered templates in DIR between runs (default: render each run)")
+    ap.add_argument("--candidates", type=int, default=1, metavar="K",
+                    help="--start templates: the K best templates each get one refiner iteration, the most "
+                         "confident goes on (K > 1 needs a flow refiner; default 1)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
     ap.add_argument("--detections", default=None, metavar="oracle|FILE.json",
                     help="instead of the detector: 'oracle' (ground-truth boxes and masks) or a BOP22 detections JSON")
@@ -68,8 +76,8 @@ def _backend_problem(args: argparse.Namespace) -> str | None:
         return f"--precision {args.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
     if args.backend == "onnx":
         return None if args.models is not None else "--backend onnx needs --models DIR (a 'cosy-lite export' folder)"
-    if args.coarse is None:
-        return "give --coarse CKPT (or --backend onnx --models DIR)"
+    if args.coarse is None and not (args.start == "templates" and args.refiner is not None):
+        return "give --coarse CKPT (or --start templates with --refiner CKPT, or --backend onnx --models DIR)"
     if args.detector is None and args.detections is None:
         return "give --detector CKPT or --detections oracle|FILE.json"
     return None
@@ -78,7 +86,8 @@ def _backend_problem(args: argparse.Namespace) -> str | None:
 def _argument_problem(args: argparse.Namespace) -> str | None:
     """What is wrong with a numeric argument (None: nothing); nothing is clamped silently."""
     for name, value, least in (("--threads", args.threads, 1), ("--limit-images", args.limit_images, 1),
-                               ("--n-refiner-iters", args.n_refiner_iters, 0), ("--vis", args.vis, 0)):
+                               ("--n-refiner-iters", args.n_refiner_iters, 0), ("--vis", args.vis, 0),
+                               ("--candidates", args.candidates, 1)):
         if value is not None and value < least:
             return f"{name} {value}: expected an integer >= {least}"
     return None
@@ -115,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
     if args.backend == "onnx":
         predictor = Predictor.from_onnx(
             args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
-            threads=args.threads, precision=args.precision, detector=args.detections is None)
+            threads=args.threads, precision=args.precision, detector=args.detections is None, start=args.start,
+            n_candidates=args.candidates, templates_cache=args.templates_cache)
         if args.detections is None and predictor.detector is None:
             raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
@@ -126,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
             detector=args.detector if args.detections is None else None, coarse=args.coarse,
             refiner=args.refiner, dataset=dataset, device=device,
             n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
-            precision=args.precision)
+            precision=args.precision, start=args.start, n_candidates=args.candidates,
+            templates_cache=args.templates_cache)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
                            args.limit_images, progress=not args.no_progress, detector_path=detector_path,

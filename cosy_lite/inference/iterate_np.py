@@ -19,7 +19,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cosy_lite.geometry.crops_np import crop_boxes, crop_image, crop_intrinsics
-from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE, pose_from_flow
+from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE, flow_confidence, pose_from_flow
 from cosy_lite.models.pose_update_np import apply_pose_update
 
 Size = tuple[int, int]
@@ -87,6 +87,24 @@ def iterate_poses(net: NumpyNet, image: np.ndarray, K: np.ndarray, TCO_init: np.
         TCO = np.concatenate(out) if out else TCO
         poses.append(TCO)
     return poses
+
+
+def refine_and_score(net: NumpyNet, image: np.ndarray, K: np.ndarray, TCO: np.ndarray, obj_ids: Sequence[int],
+                     points: np.ndarray, renderer: Any, crop_resolution: Size,
+                     batch_size: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """One iteration of a flow network from ``TCO [B,4,4]``: (poses, confidence ``[B]``). Twin of
+    :func:`cosy_lite.models.render_and_compare.refine_and_score`."""
+    TCO, K, points = (np.asarray(a, dtype=np.float64) for a in (TCO, K, points))
+    poses, scores = [], []
+    for s in range(0, len(TCO), batch_size):
+        sl = slice(s, s + batch_size)
+        inp = make_inputs(image, K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
+        out = net(inp.images)
+        poses.append(updated_poses(TCO[sl], inp, out, "flow"))
+        scores.append(flow_confidence(inp.depth, out, FLOW_STRIDE))
+    if not poses:
+        return TCO, np.zeros(0)
+    return np.concatenate(poses), np.concatenate(scores)
 
 
 def valid_poses(TCO: np.ndarray, rotation_tol: float = 1e-3, min_depth: float = MIN_DEPTH) -> np.ndarray:

@@ -2,11 +2,18 @@
 
 Per image: the image is converted to a tensor once; every detected object goes through the
 networks together (one batch per iteration, see :func:`~cosy_lite.models.render_and_compare.iterate_poses`,
-all crops of an iteration rendered in one call). Starting pose: canonical rotation and depth from
-the detection box (:func:`~cosy_lite.models.initial_pose.initial_pose_from_boxes`) -> 1 coarse
-iteration -> ``n_refiner_iterations`` refiner iterations (CosyPose: 1 + 4) -> optionally
-point-to-plane ICP against the measured depth inside each detection mask
-(:func:`~cosy_lite.inference.icp.refine_poses_icp`).
+all crops of an iteration rendered in one call). Starting pose (``start``):
+
+* ``"coarse"`` (CosyPose): canonical rotation and depth from the detection box
+  (:func:`~cosy_lite.models.initial_pose.initial_pose_from_boxes`) -> 1 coarse iteration;
+* ``"templates"``: the detection mask matched against rendered silhouettes
+  (:class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates`, no network); with
+  ``n_candidates`` > 1 the best templates each get one refiner iteration and the one the flow
+  refiner is most confident about (:func:`~cosy_lite.models.render_and_compare.refine_and_score`)
+  goes on (that iteration counts as the first of ``n_refiner_iterations``);
+
+-> ``n_refiner_iterations`` refiner iterations (CosyPose: 1 + 4) -> optionally point-to-plane ICP
+against the measured depth inside each detection mask (:func:`~cosy_lite.inference.icp.refine_poses_icp`).
 
 Robot users: ``Predictor.from_checkpoints(coarse=..., refiner=..., models_dir=...)`` then
 ``predict(rgb, K)``; no dataset needed, only the BOP ``models/`` folder of the objects (PLY in mm
@@ -45,7 +52,8 @@ from cosy_lite.models import initial_pose_np
 # has rendered crashes the process.
 from cosy_lite.models.detector import detect
 from cosy_lite.models.initial_pose import initial_pose_from_boxes
-from cosy_lite.models.render_and_compare import iterate_poses
+from cosy_lite.models.render_and_compare import iterate_poses, refine_and_score
+from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 
 
 class SetupError(CosyLiteError):
@@ -54,6 +62,7 @@ class SetupError(CosyLiteError):
 
 
 TIMING_KEYS = ("detection", "crops", "render", "networks", "icp", "total")
+STARTS = ("coarse", "templates")  # where the pose iterations start (see the module doc)
 
 
 # ----------------------------------------------------------------------------- results
@@ -66,7 +75,8 @@ class PoseEstimates:
     obj_ids [N] int64; TCO [N,4,4] float64 object-to-camera (m); scores [N] float32 (the detection
     scores); boxes [N,4] float32 detection boxes x1, y1, x2, y2 (px); valid [N] bool: finite pose,
     rotation matrix, in front of the camera (>= :data:`MIN_DEPTH`) — invalid poses must not be
-    written; TCO_coarse [N,4,4] after the coarse model; icp: one
+    written; TCO_coarse [N,4,4] where the refiner started (after the coarse model, or the chosen
+    template); icp: one
     :class:`~cosy_lite.inference.icp.IcpResult` per object, or None when ICP did not run;
     timings: seconds per stage (:data:`TIMING_KEYS`; "crops" is the rest of the pose iterations:
     crop boxes, roi_align, K_crop, pose updates).
@@ -293,9 +303,14 @@ def _object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
     return ObjectModels(Path(models_dir))
 
 
-def render_shading(coarse: PoseModel, refiner: PoseModel | None) -> str:
-    """The renderer shading both pose networks were trained with (SetupError if they differ)."""
-    if refiner is not None and refiner.render_shading != coarse.render_shading:
+def render_shading(coarse: PoseModel | None, refiner: PoseModel | None) -> str:
+    """The renderer shading the pose networks were trained with (SetupError if they differ)."""
+    if coarse is None or refiner is None:
+        model = coarse or refiner
+        if model is None:
+            raise SetupError("no pose model given (a coarse and/or a refiner checkpoint is needed)")
+        return model.render_shading
+    if refiner.render_shading != coarse.render_shading:
         raise SetupError(f"the coarse model ({coarse.describe()}) was trained on {coarse.render_shading!r} renderings, "
                          f"the refiner ({refiner.describe()}) on {refiner.render_shading!r}: they need one renderer")
     return coarse.render_shading
@@ -314,12 +329,26 @@ def _objects_renderer(models: ObjectModels, ids: list[int], n_points: int | None
     return objects, PyrenderRenderer(models_dir=models.models_dir, shading=shading), syms
 
 
+def _silhouette_templates(start: str, models: ObjectModels, objects: Any, renderer: Any,
+                          cache_dir: str | Path | None) -> SilhouetteTemplates | None:
+    """The templates for ``start="templates"`` (None otherwise), cached in ``cache_dir`` by the hash
+    of each object's mesh file."""
+    if start != "templates":
+        return None
+    from cosy_lite.models.silhouette_templates import file_key
+
+    keys = {} if cache_dir is None else {i: file_key(models.models_dir / f"obj_{int(i):06d}.ply") for i in objects.obj_ids}
+    return SilhouetteTemplates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
+                               cache_dir=cache_dir, model_keys=keys)
+
+
 class Predictor:
     """Detector -> coarse -> refiner -> optional depth ICP, for single images.
 
     Args:
         coarse, refiner: the pose networks (:class:`~cosy_lite.inference.loaders.PoseModel`; torch
-            modules, or onnxruntime sessions from :meth:`from_onnx`); refiner None: coarse only.
+            modules, or onnxruntime sessions from :meth:`from_onnx`); refiner None: coarse only;
+            coarse None: only with ``start="templates"`` (the coarse network is not used there).
         objects: :class:`~cosy_lite.models.object_table.ObjectTable` of the objects to estimate
             (model points for the crops, diameters for the starting depth).
         renderer: batched renderer of the same objects (:class:`~cosy_lite.render.renderer.PyrenderRenderer`).
@@ -334,13 +363,28 @@ class Predictor:
             of the networks (:func:`inference_net`); the given modules are not changed.
         precision: a key of :data:`PRECISIONS`: "fp32", or "bf16" autocast of the networks'
             forward pass (about 2x faster on CPUs with AVX512-BF16; the pose updates stay fp32).
+        start: a key of :data:`STARTS` (see the module doc); "templates" needs detection masks.
+        n_candidates: templates tried per detection (``start="templates"``; > 1 needs a flow refiner).
+        templates: the :class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates` to match
+            (None: 2,048 per object, rendered with ``renderer`` on first use of each object).
     """
 
     def __init__(self, coarse: PoseModel, refiner: PoseModel | None, objects: Any, renderer: Any,
                  detector: Any = None, n_refiner_iterations: int = 4, icp: bool = False,
                  icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
                  device: str | torch.device = "cpu", batch_size: int = 32, channels_last: bool = True,
-                 precision: str = "fp32", fuse_bn: bool = True):
+                 precision: str = "fp32", fuse_bn: bool = True, start: str = "coarse", n_candidates: int = 1,
+                 templates: SilhouetteTemplates | None = None):
+        if start not in STARTS:
+            raise ValueError(f"start must be one of {STARTS}, got {start!r}")
+        if coarse is None and start == "coarse":
+            raise SetupError("start='coarse' needs a coarse model (or use start='templates')")
+        if n_candidates < 1:
+            raise ValueError(f"n_candidates must be >= 1, got {n_candidates}")
+        if n_candidates > 1 and (start != "templates" or refiner is None or refiner.output != "flow"
+                                 or n_refiner_iterations < 1):
+            raise SetupError(f"n_candidates = {n_candidates} needs start='templates' and a flow refiner "
+                             f"(net.arch=flow) with at least one iteration: its confidence ranks the candidates")
         if n_refiner_iterations < 0:
             raise ValueError(f"n_refiner_iterations must be >= 0, got {n_refiner_iterations}")
         if refiner is None and n_refiner_iterations > 0:
@@ -356,6 +400,11 @@ class Predictor:
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.channels_last, self.precision = bool(channels_last), precision
+        self.start, self.n_candidates = start, int(n_candidates)
+        if start == "templates" and templates is None:
+            templates = SilhouetteTemplates(renderer, self.objects.obj_ids,
+                                            self.objects.diameters.detach().cpu().double().tolist())
+        self.templates = templates
         if isinstance(detector, nn.Module):  # else an onnxruntime detector (OnnxDetector)
             detector.to(self.device).eval()
         self._nets: dict[str, nn.Module | Callable[[Tensor], Tensor]] = {}
@@ -376,7 +425,8 @@ class Predictor:
         refiner: str | Path | None = None, models_dir: str | Path | None = None, dataset: Any = None,
         device: str | torch.device = "cpu", n_refiner_iterations: int = 4, icp: bool = False,
         icp_config: IcpConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
-        precision: str = "fp32",
+        precision: str = "fp32", start: str = "coarse", n_candidates: int = 1,
+        templates_cache: str | Path | None = None,
     ) -> "Predictor":
         """Load the checkpoints and the object models.
 
@@ -387,33 +437,38 @@ class Predictor:
                 :class:`~cosy_lite.bop.dataset.BopDataset` or dataset folder (its ``models/``).
             obj_ids: objects to estimate (default: those of the coarse checkpoint).
             n_points: model points per object for the crop boxes (default: ObjectTable's).
-            precision: "fp32" or "bf16" (see the class).
+            precision: "fp32" or "bf16" (see the class); start, n_candidates: as the class
+                (``start="templates"`` needs no coarse checkpoint); templates_cache: a folder where
+                the rendered templates are kept between runs (None: rendered in every run).
         Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
         a checkpoint does not cover the objects.
         """
-        if coarse is None:
-            raise SetupError("a coarse checkpoint is needed (coarse=...)")
+        if coarse is None and (start != "templates" or refiner is None):
+            raise SetupError("a coarse checkpoint is needed (coarse=...), or start='templates' with a refiner")
         models = _object_models(models_dir, dataset)
-        coarse_model = load_pose_model(coarse, "coarse", device)
+        coarse_model = None if coarse is None else load_pose_model(coarse, "coarse", device)
         refiner_model = None if refiner is None else load_pose_model(refiner, "refiner", device)
         if refiner_model is None:
             n_refiner_iterations = 0
-        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(coarse_model.obj_ids)
+        first = coarse_model or refiner_model
+        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
         unknown = sorted(set(ids) - set(models.obj_ids))
         if unknown:
             raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
         objects, renderer, syms = _objects_renderer(models, ids, n_points, icp,
                                                     render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
+        templates = _silhouette_templates(start, models, objects, renderer, templates_cache)
         return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
-                   syms, device, precision=precision)
+                   syms, device, precision=precision, start=start, n_candidates=n_candidates, templates=templates)
 
     @classmethod
     def from_onnx(
         cls, export_dir: str | Path, models_dir: str | Path | None = None, dataset: Any = None,
         n_refiner_iterations: int = 4, icp: bool = False, icp_config: IcpConfig | None = None,
         obj_ids: Sequence[int] | None = None, n_points: int | None = None, threads: int | None = None,
-        precision: str = "fp32", detector: bool = True, spinning: bool = False,
+        precision: str = "fp32", detector: bool = True, spinning: bool = False, start: str = "coarse",
+        n_candidates: int = 1, templates_cache: str | Path | None = None,
     ) -> "Predictor":
         """The pipeline with the exported networks of ``export_dir`` (``cosy-lite export --out``)
         in onnxruntime on the CPU; the pose iterations in numpy (:mod:`~cosy_lite.inference.iterate_np`:
@@ -432,6 +487,7 @@ class Predictor:
             detector: use ``detector.onnx`` when the export has one (False: detections are given).
             spinning: let idle onnxruntime threads spin (faster on a quiet machine, much slower on
                 a shared one).
+            start, n_candidates, templates_cache: as :meth:`from_checkpoints`.
         Raises OnnxModelError naming the file and field (missing / truncated / mismatched files,
         see :func:`~cosy_lite.inference.loaders.load_onnx_models`), SetupError when the exported
         models or the object models do not cover the objects.
@@ -451,8 +507,10 @@ class Predictor:
         if onnx.refiner is None:
             n_refiner_iterations = 0
         objects, renderer, syms = _objects_renderer(models, ids, n_points, icp, render_shading(onnx.coarse, onnx.refiner))
+        templates = _silhouette_templates(start, models, objects, renderer, templates_cache)
         return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, n_refiner_iterations, icp,
-                   icp_config, syms, "cpu", precision="fp32")
+                   icp_config, syms, "cpu", precision="fp32", start=start, n_candidates=n_candidates,
+                   templates=templates)
 
     @property
     def backend(self) -> str:
@@ -476,6 +534,17 @@ class Predictor:
     def obj_ids(self) -> list[int]:
         """Objects this predictor estimates."""
         return list(self.objects.obj_ids)
+
+    @property
+    def needs_masks(self) -> bool:
+        """True when :meth:`predict` needs detection masks (``start="templates"``)."""
+        return self.start == "templates"
+
+    def _template_candidates(self, det: Detections, K: np.ndarray) -> np.ndarray:
+        """``[N,k,4,4]`` float64: the ``n_candidates`` best template poses of each detection."""
+        assert self.templates is not None and det.masks is not None
+        masks = det.masks.cpu().numpy().astype(bool)
+        return self.templates.match(masks, det.obj_ids.tolist(), K, self.n_candidates).TCO
 
     # ------------------------------------------------------------------ stages
     def _image_tensor(self, rgb: np.ndarray) -> Tensor:
@@ -540,6 +609,9 @@ class Predictor:
             det = det.select(~bad)
         if len(det) == 0:
             return PoseEstimates.empty(self._timings(clock, t_start))
+        if self.needs_masks and det.masks is None:
+            raise ValueError("start='templates' matches the detection masks, but these detections have none "
+                             "(give detections with masks, e.g. oracle or BOP22 JSON detections with 'segmentation')")
         with _flush_denormals():
             if self.numpy_loop:
                 TCO_coarse, TCO = (torch.from_numpy(T) for T in self._poses_np(rgb, K.numpy(), det, clock))
@@ -569,13 +641,26 @@ class Predictor:
         images = image.expand(N, -1, -1, -1).contiguous()
         K_b = K.to(self.device, torch.float32)[None].expand(N, 3, 3).contiguous()
         points = self.objects.points[rows.to(self.device)]
-        TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
-                                           self.objects.diameters[rows.to(self.device)].double()).float()
         renderer = _TimedRenderer(self.renderer, clock)
-        steps = [("coarse", self.coarse, 1)]
+        n_refiner = self.n_refiner_iterations
+        if self.start == "coarse":
+            TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
+                                               self.objects.diameters[rows.to(self.device)].double()).float()
+            steps = [("coarse", self.coarse, 1)]
+            TCO_coarse = TCO_init
+        else:
+            with clock("crops"):
+                candidates = torch.from_numpy(self._template_candidates(det, K.numpy())).to(self.device)
+            if candidates.shape[1] == 1:
+                TCO_init = TCO_coarse = candidates[:, 0].float()
+            else:
+                TCO_coarse, TCO_init = self._choose_candidate(candidates.float(), image, K_b, ids, points,
+                                                              renderer, clock)
+                n_refiner -= 1
+            steps = []
         if self.refiner is not None:
-            steps.append(("refiner", self.refiner, self.n_refiner_iterations))
-        TCO, TCO_coarse = TCO_init, TCO_init
+            steps.append(("refiner", self.refiner, n_refiner))
+        TCO = TCO_init
         for role, model, n_iterations in steps:
             net = _timed_net(self._nets[role], clock, self.channels_last, self.precision)
             for _ in range(n_iterations):  # one at a time: a pose gone invalid is not rendered again
@@ -598,6 +683,28 @@ class Predictor:
         clock.seconds["crops"] += spent
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu())
 
+    def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
+                          renderer: Any, clock: _Clock) -> tuple[Tensor, Tensor]:
+        """(chosen candidate [N,4,4], it after one refiner iteration [N,4,4]) of ``candidates
+        [N,k,4,4]``: the one with the highest flow confidence (invalid candidates are not run)."""
+        N, k = candidates.shape[:2]
+        flat = candidates.reshape(N * k, 4, 4)
+        owner = torch.arange(N, device=flat.device).repeat_interleave(k)
+        refined = flat.clone()
+        score = torch.full((N * k,), -1.0, dtype=torch.float64, device=flat.device)
+        live = valid_poses(flat).nonzero().flatten()
+        if len(live):
+            assert self.refiner is not None
+            net = _timed_net(self._nets["refiner"], clock, self.channels_last, self.precision)
+            own = owner[live]
+            new, conf = refine_and_score(net, image.expand(len(live), -1, -1, -1), K_b[own], flat[live],
+                                         [ids[i] for i in own.tolist()], points[own], renderer,
+                                         self.refiner.crop_resolution, self.batch_size)
+            refined[live], score[live] = new.to(refined.dtype), conf
+        pick = score.view(N, k).argmax(dim=1)
+        at = torch.arange(N, device=flat.device)
+        return candidates[at, pick], refined.view(N, k, 4, 4)[at, pick]
+
     def _poses_np(self, rgb: np.ndarray, K: np.ndarray, det: Detections,
                   clock: _Clock) -> tuple[np.ndarray, np.ndarray]:
         """As :meth:`_poses` with numpy networks and no torch op per iteration (one image, ``K [3,3]``):
@@ -611,12 +718,23 @@ class Predictor:
         image = iterate_np.image_array(rgb)  # converted once; each object's crop reads it
         K_b = np.broadcast_to(np.asarray(K, dtype=np.float64), (N, 3, 3))
         points = all_points[rows]
-        TCO = initial_pose_np.initial_pose_from_boxes(det.boxes.double().numpy(), K_b, all_diameters[rows])
-        TCO_coarse = TCO
         renderer = _TimedRenderer(self.renderer, clock)
-        steps = [("coarse", self.coarse, 1)]
+        n_refiner = self.n_refiner_iterations
+        if self.start == "coarse":
+            TCO = initial_pose_np.initial_pose_from_boxes(det.boxes.double().numpy(), K_b, all_diameters[rows])
+            TCO_coarse = TCO
+            steps = [("coarse", self.coarse, 1)]
+        else:
+            with clock("crops"):
+                candidates = self._template_candidates(det, np.asarray(K, dtype=np.float64))
+            if candidates.shape[1] == 1:
+                TCO = TCO_coarse = candidates[:, 0]
+            else:
+                TCO_coarse, TCO = self._choose_candidate_np(candidates, image, K_b, ids, points, renderer, clock)
+                n_refiner -= 1
+            steps = []
         if self.refiner is not None:
-            steps.append(("refiner", self.refiner, self.n_refiner_iterations))
+            steps.append(("refiner", self.refiner, n_refiner))
         for role, model, n_iterations in steps:
             net = _timed_numpy_net(self._nets[role].run, clock)  # type: ignore[union-attr]
             for _ in range(n_iterations):  # one at a time: a pose gone invalid is not rendered again
@@ -633,6 +751,24 @@ class Predictor:
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
         return iterate_np.orthonormalise(TCO_coarse), iterate_np.orthonormalise(TCO)
+
+    def _choose_candidate_np(self, candidates: np.ndarray, image: np.ndarray, K_b: np.ndarray, ids: list[int],
+                             points: np.ndarray, renderer: Any, clock: _Clock) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_choose_candidate` with numpy networks and ``image [H,W,3]``."""
+        N, k = candidates.shape[:2]
+        flat = candidates.reshape(N * k, 4, 4)
+        owner = np.repeat(np.arange(N), k)
+        refined, score = flat.copy(), np.full(N * k, -1.0)
+        live = np.flatnonzero(iterate_np.valid_poses(flat))
+        if len(live):
+            assert self.refiner is not None
+            net = _timed_numpy_net(self._nets["refiner"].run, clock)  # type: ignore[union-attr]
+            own = owner[live]
+            refined[live], score[live] = iterate_np.refine_and_score(
+                net, image, K_b[own], flat[live], [ids[i] for i in own], points[own], renderer,
+                self.refiner.crop_resolution, self.batch_size)
+        pick = score.reshape(N, k).argmax(axis=1)
+        return candidates[np.arange(N), pick], refined.reshape(N, k, 4, 4)[np.arange(N), pick]
 
     def _icp(self, TCO: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
              size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:

@@ -125,3 +125,13 @@ def pose_from_flow(TCO: Tensor, K_crop: Tensor, depth: Tensor, flow: Tensor, str
         out[enough] = solve_pose(TCO[enough], K_crop[enough], X[enough], targets[enough], weights[enough], iterations)
     ok = torch.isfinite(out).all(dim=2).all(dim=1) & (out[:, 2, 3] > 0)
     return torch.where(ok[:, None, None], out, TCO)
+
+
+def flow_confidence(depth: Tensor, flow: Tensor, stride: int) -> Tensor:
+    """``[B]`` float64: the flow network's mean confidence over the rendered cells (those the solver
+    uses) of each item, 0 for an item with no rendered cell; how well the rendering was recognised
+    in the crop, used to choose among candidate poses."""
+    B, _, h, w = flow.shape
+    on = sample_cells(depth, stride, (h, w)) > 0
+    conf = torch.nan_to_num(flow[:, 2].double(), nan=0.0).clamp(0.0, 1.0)
+    return (conf * on).sum(dim=(1, 2)) / on.sum(dim=(1, 2)).clamp(min=1)

@@ -117,3 +117,15 @@ def pose_from_flow(TCO: np.ndarray, K_crop: np.ndarray, depth: np.ndarray, flow:
     bad = ~np.isfinite(new).all(axis=(1, 2)) | (new[:, 2, 3] <= 0)
     new[bad] = TCO[bad]
     return new
+
+
+def flow_confidence(depth: np.ndarray, flow: np.ndarray, stride: int) -> np.ndarray:
+    """``[B]`` float64: mean confidence over each item's rendered cells (0 with none). As
+    :func:`cosy_lite.models.flow_pose_solver.flow_confidence`."""
+    depth = np.asarray(depth)
+    if depth.ndim == 4:
+        depth = depth[:, 0]
+    B, _, h, w = flow.shape
+    on = sample_cells(depth, stride, (h, w)) > 0
+    conf = np.clip(np.nan_to_num(np.asarray(flow, dtype=np.float64)[:, 2], nan=0.0), 0.0, 1.0)
+    return (conf * on).sum(axis=(1, 2)) / np.maximum(on.sum(axis=(1, 2)), 1)

@@ -95,3 +95,24 @@ def iterate_poses(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TC
         TCO = torch.cat(out) if out else TCO
         poses.append(TCO)
     return poses
+
+
+def refine_and_score(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int],
+                     points: Tensor, renderer: Renderer, crop_resolution: Size,
+                     batch_size: int = 32) -> tuple[Tensor, Tensor]:
+    """One iteration of a flow network from ``TCO [B,4,4]`` (arguments as :func:`iterate_poses`):
+    (poses ``[B,4,4]``, confidence ``[B]``: the network's mean confidence over the rendered cells,
+    :func:`~cosy_lite.models.flow_pose_solver.flow_confidence`). Used to rank candidate start poses."""
+    from cosy_lite.models.flow_pose_net import FlowPoseNet
+    from cosy_lite.models.flow_pose_solver import flow_confidence
+
+    poses, scores = [], []
+    for s in range(0, len(TCO), batch_size):
+        sl = slice(s, s + batch_size)
+        inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
+        out = net(inp.images)
+        poses.append(updated_poses(TCO[sl], inp, out, "flow"))
+        scores.append(flow_confidence(inp.depth, out, FlowPoseNet.stride))
+    if not poses:
+        return TCO, torch.zeros(0, dtype=torch.float64, device=TCO.device)
+    return torch.cat(poses), torch.cat(scores)
