@@ -4,10 +4,13 @@ Steps, each a separate process (the commands a user would type), each skipped wh
 is already there, so an interrupted demo continues where it stopped:
 
 1. generate the default dataset ``ycbvsynth`` (if absent) and validate it;
-2. train the detector, the coarse model and the refiner (``configs/MODEL/demo.yaml`` with a
-   shorter time budget per model, :attr:`DemoConfig.train_minutes`); a run folder with a
-   checkpoint but no ``DONE`` marker is resumed;
-3. infer on the test split: detector -> coarse -> refiner (RGB), the same + depth ICP, and with
+2. train the detector and the refiner (``configs/MODEL/demo.yaml`` with a shorter time budget per
+   model, :attr:`DemoConfig.train_minutes`), each as two single-threaded DDP processes; a run
+   folder with a checkpoint but no ``DONE`` marker is resumed. The poses start from silhouette
+   templates matched to the detection masks (``infer.py --start templates``): at this budget the
+   trained coarse network starts no better than the box pose (bench/RESULTS.md, issue 13), so it
+   is trained only with ``DemoConfig(start="coarse")``;
+3. infer on the test split: detector -> templates -> refiner (RGB), the same + depth ICP, and with
    oracle (ground-truth) detections, so detector and pose errors can be told apart;
 4. evaluate every CSV (``cosy-lite eval``) and print one AR table (also written to
    ``OUT/demo_summary.md`` and ``OUT/demo_ar.png``), with where the overlays are.
@@ -45,20 +48,31 @@ class DemoConfig:
     runs: Path = REPO / "runs" / "demo"
     out: Path = REPO / "outputs"
     # detector: its profile's 1200 steps take ~17.5 min on the 2-core machine (1.15 steps/s with 2 DDP
-    # processes; the budget is a cap); coarse and refiner train side by side, one core each
+    # processes; the budget is a cap); then the refiner, also on both cores (start="coarse": coarse
+    # and refiner side by side, one core each)
     train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 18.0, "coarse": 11.0, "refiner": 11.0})
     n_refiner_iters: int = 4
+    start: str = "templates"  # infer.py --start: "templates" (no coarse network) or "coarse"
+    n_candidates: int = 5  # infer.py --candidates (start="templates")
     vis: int = 4
     threads: int = 2
 
 
+def trained_models(cfg: DemoConfig) -> tuple[str, ...]:
+    """The models the demo trains: no coarse network when the poses start from templates."""
+    return MODELS if cfg.start == "coarse" else tuple(m for m in MODELS if m != "coarse")
+
+
 def infer_runs(cfg: DemoConfig) -> list[InferRun]:
     det = ["--detector", str(cfg.runs / "detector" / "checkpoint.pt")]
+    start = "coarse" if cfg.start == "coarse" else f"templates (top {cfg.n_candidates})"
+    masks = "GT boxes + masks" if cfg.start == "templates" else "GT boxes"
     return [
-        InferRun("cosylite", "detector + coarse + refiner (RGB)", det + ["--vis", str(cfg.vis)]),
-        InferRun("cosyliteicp", "detector + coarse + refiner + depth ICP", det + ["--icp"]),
-        InferRun("cosyliteoracle", "GT boxes (oracle) + coarse + refiner (RGB)", ["--detections", "oracle"]),
-        InferRun("cosyliteoracleicp", "GT boxes (oracle) + coarse + refiner + depth ICP", ["--detections", "oracle", "--icp"]),
+        InferRun("cosylite", f"detector + {start} + refiner (RGB)", det + ["--vis", str(cfg.vis)]),
+        InferRun("cosyliteicp", f"detector + {start} + refiner + depth ICP", det + ["--icp"]),
+        InferRun("cosyliteoracle", f"{masks} (oracle) + {start} + refiner (RGB)", ["--detections", "oracle"]),
+        InferRun("cosyliteoracleicp", f"{masks} (oracle) + {start} + refiner + depth ICP",
+                 ["--detections", "oracle", "--icp"]),
     ]
 
 
@@ -93,7 +107,7 @@ def train_command(cfg: DemoConfig, root: Path, model: str) -> list[str]:
     if (run_dir / "checkpoint.pt").is_file():
         args.append("--resume")
     args.append(f"loop.max_minutes={cfg.train_minutes[model]}")
-    if model == "detector":
+    if model == "detector" or (model == "refiner" and "coarse" not in trained_models(cfg)):
         return _py("-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", *args, "loop.num_workers=0")
     return _py(*args)
 
@@ -120,9 +134,10 @@ def _run_parallel(cmds: list[list[str]], whats: list[str], logs: list[Path]) -> 
 
 
 def train_models(cfg: DemoConfig, root: Path) -> None:
-    """The detector (both cores), then the coarse model and the refiner side by side (one core each)."""
+    """The detector (both cores), then the refiner (both cores), or the coarse model and the refiner
+    side by side (one core each)."""
     todo = []
-    for model in MODELS:
+    for model in trained_models(cfg):
         if (cfg.runs / model / "DONE").is_file():
             print(f"=== train {model}: done before ({cfg.runs / model})")
         else:
@@ -132,7 +147,11 @@ def train_models(cfg: DemoConfig, root: Path) -> None:
              env={"OMP_NUM_THREADS": "1"})
         _mark_done(cfg, "detector")
     pose = [m for m in todo if m != "detector"]
-    if pose:
+    if pose == ["refiner"] and "coarse" not in trained_models(cfg):
+        _run(train_command(cfg, root, "refiner"), f"train refiner ({cfg.train_minutes['refiner']:g} min budget)",
+             env={"OMP_NUM_THREADS": "1"})
+        _mark_done(cfg, "refiner")
+    elif pose:
         _run_parallel([train_command(cfg, root, m) for m in pose],
                       [f"train {m} ({cfg.train_minutes[m]:g} min budget)" for m in pose],
                       [cfg.runs / f"{m}.log" for m in pose])
@@ -152,7 +171,10 @@ def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
         csv = cfg.out / "results" / f"{run.method}_{cfg.dataset}-test.csv"
         scores = csv.parent / f"{csv.stem}_eval" / "scores.json"
         if not csv.is_file():
-            _run(_py("infer.py", "--dataset", str(root), "--coarse", str(cfg.runs / "coarse" / "checkpoint.pt"),
+            start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
+                     else ["--start", "templates", "--candidates", str(cfg.n_candidates),
+                           "--templates-cache", str(cfg.runs / "templates")])
+            _run(_py("infer.py", "--dataset", str(root), *start,
                      "--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"), "--n-refiner-iters", str(cfg.n_refiner_iters),
                      "--threads", str(cfg.threads), "--method", run.method, "--out", str(csv.parent), *run.args),
                  f"infer: {run.label}")
@@ -203,6 +225,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=DemoConfig.out, help="CSVs, scores, overlays, summary")
     p.add_argument("--minutes", type=float, nargs=3, metavar=("DET", "COARSE", "REF"), default=None,
                    help="training budget per model (default 18 11 11)")
+    p.add_argument("--start", choices=["templates", "coarse"], default=DemoConfig.start,
+                   help="start poses: silhouette templates (default; the coarse network is not trained) or the "
+                        "trained coarse network (CosyPose)")
+    p.add_argument("--candidates", type=int, default=DemoConfig.n_candidates, metavar="K",
+                   help=f"--start templates: templates tried per detection (default {DemoConfig.n_candidates})")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -214,7 +241,8 @@ def run(args: argparse.Namespace) -> int:
     if args.dataset in RENAMED_DATASETS:
         raise BopFormatError(args.data_root / args.dataset, "--dataset", renamed_dataset_message(args.dataset)
                              + f": use --dataset {RENAMED_DATASETS[args.dataset]}")
-    cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=args.out)
+    cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=args.out,
+                     start=args.start, n_candidates=args.candidates)
     if args.minutes:
         cfg.train_minutes = dict(zip(MODELS, args.minutes))
     t0 = time.perf_counter()

@@ -22,12 +22,29 @@ def recorded(monkeypatch):
     return calls
 
 
-def _cfg(tmp_path: Path) -> demo.DemoConfig:
-    return demo.DemoConfig(data_root=tmp_path / "data", runs=tmp_path / "runs", out=tmp_path / "out")
+def _cfg(tmp_path: Path, start: str = "templates") -> demo.DemoConfig:
+    return demo.DemoConfig(data_root=tmp_path / "data", runs=tmp_path / "runs", out=tmp_path / "out", start=start)
+
+
+def test_with_templates_the_detector_and_the_refiner_train_on_both_cores(tmp_path, recorded, monkeypatch):
+    cfg = _cfg(tmp_path)
+    demo.train_models(cfg, tmp_path / "data" / "ycbvsynth")
+    assert [c[c.index("--model") + 1] for c in recorded] == ["detector", "refiner"]  # no coarse network
+    for cmd in recorded:
+        assert cmd[1:6] == ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+        assert "loop.num_workers=0" in cmd
+    assert f"loop.max_minutes={cfg.train_minutes['refiner']}" in recorded[1]
+    recorded.clear()
+    monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
+    demo.infer_and_eval(cfg, tmp_path / "missing")  # no scores: every step runs
+    infer = [c for c in recorded if "infer.py" in c][0]
+    assert "--coarse" not in infer and infer[infer.index("--start") + 1] == "templates"
+    assert infer[infer.index("--candidates") + 1] == str(cfg.n_candidates)
 
 
 def test_training_runs_each_model_once_with_its_budget_and_resumes_unfinished_runs(tmp_path, recorded):
-    cfg = _cfg(tmp_path)
+    cfg = _cfg(tmp_path, start="coarse")
     (cfg.runs / "coarse").mkdir(parents=True)
     (cfg.runs / "coarse" / "checkpoint.pt").write_bytes(b"")  # interrupted run: resumed
     (cfg.runs / "refiner").mkdir(parents=True)
@@ -79,7 +96,7 @@ def test_infer_and_eval_reads_every_scores_file_and_the_summary_lists_them(tmp_p
 
 
 def test_infer_and_eval_runs_the_missing_steps_with_the_demo_checkpoints(tmp_path, recorded, monkeypatch):
-    cfg = _cfg(tmp_path)
+    cfg = _cfg(tmp_path, start="coarse")
     monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
     demo.infer_and_eval(cfg, tmp_path / "root")
