@@ -41,6 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--start templates: the K best templates each get one refiner iteration, the most "
                          "confident goes on (K > 1 needs a flow refiner; default 1)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
+    ap.add_argument("--also-before-icp", default=None, metavar="METHOD",
+                    help="with --icp: also write the poses before ICP as METHOD_DATASET-SPLIT.csv (the RGB-only "
+                         "results of the same run, their time without ICP)")
     ap.add_argument("--detections", default=None, metavar="oracle|FILE.json",
                     help="instead of the detector: 'oracle' (ground-truth boxes and masks) or a BOP22 detections JSON")
     ap.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
@@ -72,6 +75,8 @@ def _backend_problem(args: argparse.Namespace) -> str | None:
     given = [f"--{k}" for k in BACKEND_ONLY[other] if getattr(args, k) is not None]
     if given:
         return f"{' '.join(given)} not used with --backend {args.backend}"
+    if args.also_before_icp is not None and not args.icp:
+        return "--also-before-icp needs --icp"
     if args.precision not in PRECISIONS[args.backend]:
         return f"--precision {args.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
     if args.backend == "onnx":
@@ -114,8 +119,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: method name {args.method!r} written as {method!r} (BOP file names have one '_')")
     try:
         results_filename(method, "dataset", args.split)
+        if args.also_before_icp is not None:
+            results_filename(args.also_before_icp, "dataset", args.split)
     except ValueError as e:
-        print(f"error: --method / --split: {e}", file=sys.stderr)
+        print(f"error: --method / --also-before-icp / --split: {e}", file=sys.stderr)
+        return 2
+    if args.also_before_icp == method:
+        print("error: --also-before-icp: the same name as --method (the two CSV files would be one)", file=sys.stderr)
         return 2
     root = dataset_folder(args.dataset, args.data_root)
     if args.threads is not None:
@@ -141,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
                            args.limit_images, progress=not args.no_progress, detector_path=detector_path,
-                           task=args.task)
+                           task=args.task, method_before_icp=args.also_before_icp)
     for p in summary.problems:
         print(p)
     for line in summary.lines():

@@ -10,8 +10,9 @@ is already there, so an interrupted demo continues where it stopped:
    templates matched to the detection masks (``infer.py --start templates``): at this budget the
    trained coarse network starts no better than the box pose (bench/RESULTS.md, issue 13), so it
    is trained only with ``DemoConfig(start="coarse")``;
-3. infer on the test split: detector -> templates -> refiner (RGB), the same + depth ICP, and with
-   oracle (ground-truth) detections, so detector and pose errors can be told apart;
+3. infer on the test split: detector -> templates -> refiner -> depth ICP, and the same with oracle
+   (ground-truth) detections, so detector and pose errors can be told apart; each run also writes its
+   poses before ICP (the RGB-only results: ``infer.py --also-before-icp``);
 4. evaluate every CSV (``cosy-lite eval``) and print one AR table (also written to
    ``OUT/demo_summary.md`` and ``OUT/demo_ar.png``), with where the overlays are.
 """
@@ -34,11 +35,13 @@ METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_
 
 @dataclass
 class InferRun:
-    """One ``infer.py`` run of the demo: its method name (CSV prefix) and extra arguments."""
+    """One ``infer.py`` run of the demo: its method name (CSV prefix) and extra arguments;
+    before_icp: (method, label) of the same run's poses before ICP (``--also-before-icp``)."""
 
     method: str
     label: str
     args: list[str]
+    before_icp: tuple[str, str] | None = None
 
 
 @dataclass
@@ -67,13 +70,29 @@ def infer_runs(cfg: DemoConfig) -> list[InferRun]:
     det = ["--detector", str(cfg.runs / "detector" / "checkpoint.pt")]
     start = "coarse" if cfg.start == "coarse" else f"templates (top {cfg.n_candidates})"
     masks = "GT boxes + masks" if cfg.start == "templates" else "GT boxes"
+    # each ICP run also writes its poses before ICP: the RGB-only results at no extra cost
     return [
-        InferRun("cosylite", f"detector + {start} + refiner (RGB)", det + ["--vis", str(cfg.vis)]),
-        InferRun("cosyliteicp", f"detector + {start} + refiner + depth ICP", det + ["--icp"]),
-        InferRun("cosyliteoracle", f"{masks} (oracle) + {start} + refiner (RGB)", ["--detections", "oracle"]),
+        InferRun("cosyliteicp", f"detector + {start} + refiner + depth ICP",
+                 det + ["--icp", "--vis", str(cfg.vis), "--also-before-icp", "cosylite"],
+                 ("cosylite", f"detector + {start} + refiner (RGB)")),
         InferRun("cosyliteoracleicp", f"{masks} (oracle) + {start} + refiner + depth ICP",
-                 ["--detections", "oracle", "--icp"]),
+                 ["--detections", "oracle", "--icp", "--also-before-icp", "cosyliteoracle"],
+                 ("cosyliteoracle", f"{masks} (oracle) + {start} + refiner (RGB)")),
     ]
+
+
+def scored_runs(cfg: DemoConfig) -> list[InferRun]:
+    """The results the demo scores, one per CSV: each run's poses before ICP, then after."""
+    out = []
+    for run in infer_runs(cfg):
+        if run.before_icp is not None:
+            out.append(InferRun(run.before_icp[0], run.before_icp[1], run.args))
+        out.append(run)
+    return out
+
+
+def _csv(cfg: DemoConfig, method: str) -> Path:
+    return cfg.out / "results" / f"{method}_{cfg.dataset}-test.csv"
 
 
 def _run(cmd: list[str], what: str, env: dict[str, str] | None = None) -> None:
@@ -166,18 +185,21 @@ def _mark_done(cfg: DemoConfig, model: str) -> None:
 
 
 def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
-    results = []
     for run in infer_runs(cfg):
-        csv = cfg.out / "results" / f"{run.method}_{cfg.dataset}-test.csv"
-        scores = csv.parent / f"{csv.stem}_eval" / "scores.json"
-        if not csv.is_file():
+        csv = _csv(cfg, run.method)
+        wanted = [csv] + ([_csv(cfg, run.before_icp[0])] if run.before_icp is not None else [])
+        if not all(p.is_file() for p in wanted):
             start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
                      else ["--start", "templates", "--candidates", str(cfg.n_candidates),
                            "--templates-cache", str(cfg.runs / "templates")])
             _run(_py("infer.py", "--dataset", str(root), *start,
                      "--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"), "--n-refiner-iters", str(cfg.n_refiner_iters),
                      "--threads", str(cfg.threads), "--method", run.method, "--out", str(csv.parent), *run.args),
-                 f"infer: {run.label}")
+                 f"infer: {run.label}" + (f" (and {run.before_icp[1]})" if run.before_icp else ""))
+    results = []
+    for run in scored_runs(cfg):
+        csv = _csv(cfg, run.method)
+        scores = csv.parent / f"{csv.stem}_eval" / "scores.json"
         if not scores.is_file():
             _run(_py("-m", "cosy_lite.cli", "eval", "--dataset", str(root), "--results", str(csv), "--out", str(scores.parent)),
                  f"evaluate: {run.label}")

@@ -120,6 +120,7 @@ def test_cosy_lite_generate_bad_override(tmp_path, capsys):
     (["--limit-images", "0"], "--limit-images 0: expected an integer >= 1"),
     (["--n-refiner-iters", "-1"], "--n-refiner-iters -1: expected an integer >= 0"),
     (["--vis", "-2"], "--vis -2: expected an integer >= 0"),
+    (["--candidates", "0"], "--candidates 0: expected an integer >= 1"),
 ])
 def test_infer_py_bad_number(tmp_path, capsys, args, words):
     import infer

@@ -78,7 +78,7 @@ def _scores(ar: float) -> dict:
 
 def test_infer_and_eval_reads_every_scores_file_and_the_summary_lists_them(tmp_path, recorded):
     cfg = _cfg(tmp_path)
-    runs = demo.infer_runs(cfg)
+    runs = demo.scored_runs(cfg)
     for i, run in enumerate(runs):  # as if infer.py and eval had run before
         csv = cfg.out / "results" / f"{run.method}_{cfg.dataset}-test.csv"
         (csv.parent / f"{csv.stem}_eval").mkdir(parents=True)
@@ -88,6 +88,7 @@ def test_infer_and_eval_reads_every_scores_file_and_the_summary_lists_them(tmp_p
     assert recorded == []  # nothing re-run
     assert [r.method for r, _ in results] == ["cosylite", "cosyliteicp", "cosyliteoracle", "cosyliteoracleicp"]
     assert any("--icp" in r.args for r, _ in results[1:2]) and "oracle" in results[2][0].args
+    assert results[0][0].label.endswith("(RGB)") and results[1][0].label.endswith("depth ICP")
     table = demo.summary_table(results).splitlines()
     assert table[0] == "| pipeline | AR | AR_VSD | AR_MSSD | AR_MSPD |"
     assert table[3].endswith("| 0.100 | 0.200 | 0.300 | 0.400 |")  # 2nd run: AR 0.1, VSD 0.2, ...
@@ -102,7 +103,9 @@ def test_infer_and_eval_runs_the_missing_steps_with_the_demo_checkpoints(tmp_pat
     demo.infer_and_eval(cfg, tmp_path / "root")
     infers = [c for c in recorded if "infer.py" in c]
     evals = [c for c in recorded if "eval" in c]
-    assert len(infers) == len(evals) == 4
+    assert len(infers) == 2 and len(evals) == 4  # each ICP run also writes its poses before ICP
+    for cmd, before in zip(infers, ("cosylite", "cosyliteoracle")):
+        assert "--icp" in cmd and cmd[cmd.index("--also-before-icp") + 1] == before
     first = infers[0]
     assert first[first.index("--coarse") + 1] == str(cfg.runs / "coarse" / "checkpoint.pt")
     assert first[first.index("--detector") + 1] == str(cfg.runs / "detector" / "checkpoint.pt")

@@ -110,6 +110,56 @@ def test_infer_oracle_writes_a_valid_bop19_csv(tiny_synth_root, ckpts, tmp_path)
     assert cli(["check-results", str(csv), "--dataset", str(tiny_synth_root)]) == 0
 
 
+def test_infer_from_templates_needs_no_coarse_model(tiny_synth_root, ckpts, tmp_path, capsys):
+    """--start templates: the GT masks (oracle) matched to templates; no refiner iteration, so each
+    written pose is a template pose: in front of the camera, at about the GT depth."""
+    import infer
+
+    rc = infer.main(["--dataset", str(tiny_synth_root), "--start", "templates", "--refiner", str(ckpts["refiner"]),
+                     "--n-refiner-iters", "0", "--detections", "oracle", "--out", str(tmp_path), "--no-progress",
+                     "--templates-cache", str(tmp_path / "templates")])
+    assert rc == 0, capsys.readouterr().err
+    ds = BopDataset(tiny_synth_root)
+    rows = _rows_by_image(tmp_path / "cosylite_tiny-test.csv")
+    assert set(rows) == set(targets_by_image(ds.test_targets()))
+    ratios = []
+    for key, est in rows.items():
+        gt = {g.obj_id: g.TCO for g in ds.image("test", *key).gt}
+        ratios += [e.TCO[2, 3] / gt[e.obj_id][2, 3] for e in est]  # both in m (the reader converts)
+    assert 0.8 < float(np.median(ratios)) < 1.25  # template depth from the visible box
+    assert len(list((tmp_path / "templates").glob("*.npz"))) >= 1
+    assert infer.main(["--dataset", str(tiny_synth_root), "--detections", "oracle", "--start", "templates"]) == 2
+    assert "--refiner CKPT" in capsys.readouterr().err  # templates without a coarse model need a refiner
+
+
+def test_icp_run_also_writes_its_poses_before_icp(tiny_synth_root, ckpts, tmp_path):
+    """method_before_icp (infer.py --also-before-icp): the second CSV holds exactly what the same run
+    without ICP writes; the first holds ICP's poses (an ICP that accepts any update, so that they differ)."""
+    import infer
+    from cosy_lite.inference.icp import IcpConfig
+
+    ds = BopDataset(tiny_synth_root)
+    kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds, n_refiner_iterations=1)
+    loose = IcpConfig(max_rotation_deg=180.0, max_translation=1.0, min_fitness=0.0, max_inlier_rmse=1.0)
+    run_on_split(Predictor.from_checkpoints(**kw), ds, tmp_path / "rgb", method="rgb", detections="oracle",
+                 progress=False)
+    s = run_on_split(Predictor.from_checkpoints(**kw, icp=True, icp_config=loose), ds, tmp_path / "both",
+                     method="icp", detections="oracle", progress=False, method_before_icp="rgb")
+    assert s.ok and s.icp_accepted > 0 and s.csv_before_icp == tmp_path / "both" / "rgb_tiny-test.csv"
+    alone = read_results_csv(tmp_path / "rgb" / "rgb_tiny-test.csv")
+    before = read_results_csv(s.csv_before_icp)
+    after = read_results_csv(s.csv_path)
+    assert len(alone) == len(before) == len(after) > 0
+    for a, b, c in zip(alone, before, after):
+        assert (a.scene_id, a.im_id, a.obj_id, a.score) == (b.scene_id, b.im_id, b.obj_id, b.score)
+        np.testing.assert_allclose(b.TCO, a.TCO, atol=1e-6)  # mm-rounded CSV values
+        assert b.time <= c.time
+    assert sum(np.abs(b.TCO - c.TCO).max() > 1e-4 for b, c in zip(before, after)) >= s.icp_accepted // 2
+    common = ["--dataset", str(tiny_synth_root), "--coarse", str(ckpts["coarse"]), "--detections", "oracle"]
+    assert infer.main(common + ["--out", str(tmp_path), "--also-before-icp", "rgb"]) == 2  # needs --icp
+    assert infer.main(common + ["--out", str(tmp_path), "--icp", "--also-before-icp", "cosylite"]) == 2  # same name
+
+
 def _detections_json(path: Path, ds: BopDataset, n_copies: int, time_s: float) -> dict:
     """Per GT instance ``n_copies`` detections (box shifted by 2 px each, decreasing scores);
     returns {(scene, im, obj): scores}."""
@@ -176,6 +226,14 @@ def test_predict_from_models_dir_with_icp(tiny_synth_root, ckpts):
     assert all(r.accepted or r.reason for r in est.icp) and bool(est.valid.all())
     assert all(est.timings[k] > 0 for k in ("crops", "render", "networks", "total")) and est.timings["detection"] == 0
     assert est.timings["total"] >= sum(est.timings[k] for k in ("crops", "render", "networks", "icp"))
+    # before_icp(): the refiner's poses, as a predictor without ICP gives them; ICP's own results after
+    plain = Predictor.from_checkpoints(coarse=ckpts["coarse"], models_dir=tiny_synth_root / "models")
+    alone = plain.predict(ds.load_rgb(rec), rec.camera.K, detections=det)
+    before = est.before_icp()
+    assert before.icp is None and before.timings["icp"] == 0 and before.timings["total"] < est.timings["total"]
+    np.testing.assert_allclose(before.TCO.numpy(), alone.TCO.numpy(), atol=1e-9)
+    for k, r in enumerate(est.icp):
+        np.testing.assert_allclose(est.TCO[k].numpy(), r.TCO, atol=1e-6)
 
 
 class _NanNet(nn.Module):

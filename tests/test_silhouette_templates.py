@@ -126,7 +126,7 @@ def _detections(scene, with_masks: bool = True):
 
     boxes = torch.from_numpy(mask_boxes(scene["masks"])).float()
     return Detections(boxes, torch.tensor(scene["ids"]), torch.tensor([0.9, 0.8, 0.7, 0.6]),
-                      torch.from_numpy(scene["masks"]) if with_masks else None)
+                      torch.from_numpy(scene["masks"].copy()) if with_masks else None)
 
 
 def _predictor(scene, refiner, n_refiner_iterations: int, n_candidates: int) -> Predictor:
@@ -154,6 +154,12 @@ def test_predictor_starts_from_the_matched_template(scene):
     np.testing.assert_allclose(est.TCO_coarse.numpy(), want, atol=1e-7)
     with pytest.raises(ValueError, match="masks"):
         p.predict(_image(scene), K, detections=_detections(scene, with_masks=False))
+    det = _detections(scene)
+    det.masks[1] = False  # the detector's mask can be empty: its box stands in
+    est = p.predict(_image(scene), K, detections=det)
+    assert bool(est.valid.all())
+    np.testing.assert_allclose(est.TCO[[0, 2, 3]].numpy(), want[[0, 2, 3]], atol=1e-7)
+    assert abs(est.TCO[1, 2, 3].item() / want[1, 2, 3] - 1) < 0.3  # from the box: about the right depth
 
 
 def test_candidates_are_chosen_alike_by_the_torch_and_the_numpy_loop(scene, tmp_path):

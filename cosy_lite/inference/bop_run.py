@@ -105,6 +105,7 @@ class RunSummary:
     n_degenerate: int = 0
     vis_paths: list[Path] = field(default_factory=list)
     problems: list[Problem] = field(default_factory=list)
+    csv_before_icp: Path | None = None  # the same run's poses before ICP (method_before_icp)
 
     @property
     def ok(self) -> bool:
@@ -127,6 +128,8 @@ class RunSummary:
             out.append(f"overlays: {self.vis_paths[0].parent} ({len(self.vis_paths)} PNGs)")
         verdict = "passes the results checker" if self.ok else "FAILS the results checker (see above)"
         out.append(f"results: {self.csv_path} ({verdict})")
+        if self.csv_before_icp is not None:
+            out.append(f"results before ICP: {self.csv_before_icp}")
         return out
 
 
@@ -188,7 +191,8 @@ def _image_targets(dataset: BopDataset, task: str, predictor: Predictor, detecto
 def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path, split: str = "test",
                  method: str = "cosylite", detections: str | Path | None = None, n_vis: int = 0,
                  limit_images: int | None = None, progress: bool = True,
-                 detector_path: Path | None = None, task: str = "6d-localization") -> RunSummary:
+                 detector_path: Path | None = None, task: str = "6d-localization",
+                 method_before_icp: str | None = None) -> RunSummary:
     """Estimate the poses of the targets of ``split`` and write ``out_dir/METHOD_DATASET-SPLIT.csv``.
 
     Args:
@@ -198,6 +202,9 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         task: "6d-localization" (BOP19 ViVo: per image and object its ``inst_count`` best detections)
             or "6d-detection" (BOP 2024/2025: the images of ``test_targets_bop24.json``, every detection
             of a known object, at most the 100 best per image).
+        method_before_icp: with ICP, also write the refiner's poses before ICP as
+            ``out_dir/METHOD_BEFORE_ICP_DATASET-SPLIT.csv`` (their ``time`` without the ICP stage): the
+            RGB-only results of the same run, at no extra cost.
     """
     from tqdm import tqdm
 
@@ -205,6 +212,11 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         raise ValueError(f"task {task!r}: expected one of {list(TASKS)}")
     out_dir = Path(out_dir)
     csv_path = out_dir / results_filename(method, dataset.name, split)
+    if method_before_icp is not None and not predictor.icp:
+        raise SetupError(f"method_before_icp={method_before_icp!r}: there is no 'before ICP' without ICP")
+    csv_before = None if method_before_icp is None else out_dir / results_filename(method_before_icp, dataset.name, split)
+    if csv_before == csv_path:
+        raise SetupError(f"method_before_icp is the method name {method!r}: the two CSV files would be one")
     split_dir = resolve_split_folder(dataset.root, split, None)
     split_folder = split_dir.name if split_dir is not None else split
     image_keys, choose = _image_targets(dataset, task, predictor, detector_path)
@@ -213,7 +225,9 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     if source is None and predictor.detector is None:
         raise SetupError("no detections: load a detector checkpoint or give detections ('oracle' or a JSON file)")
     estimates: list[PoseEstimate] = []
-    summary = RunSummary(csv_path, len(keys), 0, 0, 0, 0.0, timings=dict.fromkeys(TIMING_KEYS, 0.0))
+    estimates_before: list[PoseEstimate] = []
+    summary = RunSummary(csv_path, len(keys), 0, 0, 0, 0.0, timings=dict.fromkeys(TIMING_KEYS, 0.0),
+                         csv_before_icp=csv_before)
     t_run = time.perf_counter()
     bar = tqdm(keys, desc=f"infer {dataset.name}/{split}", unit="img", disable=None if progress else True)
     for k, (scene_id, im_id) in enumerate(bar):
@@ -250,6 +264,12 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         for i in range(len(good)):
             estimates.append(PoseEstimate(scene_id, im_id, int(good.obj_ids[i]), float(good.scores[i]),
                                           good.TCO[i].numpy(), t_image))
+        if csv_before is not None:
+            before = est.before_icp().only_valid()
+            t_before = t_image - est.timings.get("icp", 0.0)
+            for i in range(len(before)):
+                estimates_before.append(PoseEstimate(scene_id, im_id, int(before.obj_ids[i]), float(before.scores[i]),
+                                                     before.TCO[i].numpy(), t_before))
         if k < n_vis:
             name = f"{csv_path.stem}_{scene_id:06d}_{im_id:06d}.png"
             summary.vis_paths.append(_write_overlay(out_dir / "vis" / name, rgb, rec, good, predictor))
@@ -259,4 +279,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     summary.n_estimates = len(estimates)
     summary.seconds = time.perf_counter() - t_run
     summary.problems = check_results(csv_path, dataset.root, dataset.name, split)
+    if csv_before is not None:
+        write_results_csv(csv_before, estimates_before)
+        summary.problems += check_results(csv_before, dataset.root, dataset.name, split)
     return summary

@@ -78,6 +78,7 @@ class PoseEstimates:
     written; TCO_coarse [N,4,4] where the refiner started (after the coarse model, or the chosen
     template); icp: one
     :class:`~cosy_lite.inference.icp.IcpResult` per object, or None when ICP did not run;
+    TCO_before_icp [N,4,4]: the refiner's poses when ICP ran (None otherwise);
     timings: seconds per stage (:data:`TIMING_KEYS`; "crops" is the rest of the pose iterations:
     crop boxes, roi_align, K_crop, pose updates).
     """
@@ -90,6 +91,7 @@ class PoseEstimates:
     TCO_coarse: Tensor
     timings: dict[str, float] = field(default_factory=dict)
     icp: list[IcpResult] | None = None
+    TCO_before_icp: Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.obj_ids)
@@ -104,8 +106,19 @@ class PoseEstimates:
         """The estimates with a valid pose (same order)."""
         keep = self.valid.nonzero().flatten().tolist()
         icp = None if self.icp is None else [self.icp[i] for i in keep]
+        before = None if self.TCO_before_icp is None else self.TCO_before_icp[keep]
         return replace(self, obj_ids=self.obj_ids[keep], TCO=self.TCO[keep], scores=self.scores[keep],
-                       boxes=self.boxes[keep], valid=self.valid[keep], TCO_coarse=self.TCO_coarse[keep], icp=icp)
+                       boxes=self.boxes[keep], valid=self.valid[keep], TCO_coarse=self.TCO_coarse[keep], icp=icp,
+                       TCO_before_icp=before)
+
+    def before_icp(self) -> "PoseEstimates":
+        """The estimates as they were before ICP (the refiner's poses; validity and timings without
+        ICP); these estimates themselves when ICP did not run."""
+        if self.TCO_before_icp is None:
+            return self
+        timings = dict(self.timings, total=self.timings.get("total", 0.0) - self.timings.get("icp", 0.0), icp=0.0)
+        return replace(self, TCO=self.TCO_before_icp, valid=valid_poses(self.TCO_before_icp), icp=None,
+                       TCO_before_icp=None, timings=timings)
 
 
 def valid_poses(TCO: Tensor, rotation_tol: float = 1e-3, min_depth: float = MIN_DEPTH) -> Tensor:
@@ -544,6 +557,9 @@ class Predictor:
         """``[N,k,4,4]`` float64: the ``n_candidates`` best template poses of each detection."""
         assert self.templates is not None and det.masks is not None
         masks = det.masks.cpu().numpy().astype(bool)
+        empty = ~masks.any(axis=(1, 2))
+        if empty.any():  # a detection whose mask has no pixel (the detector's threshold): its box stands in
+            masks[empty] = _box_masks(det.boxes[torch.from_numpy(empty)], masks.shape[1:])
         return self.templates.match(masks, det.obj_ids.tolist(), K, self.n_candidates).TCO
 
     # ------------------------------------------------------------------ stages
@@ -617,8 +633,9 @@ class Predictor:
                 TCO_coarse, TCO = (torch.from_numpy(T) for T in self._poses_np(rgb, K.numpy(), det, clock))
             else:
                 TCO_coarse, TCO = self._poses(rgb, K, det, clock)
-        icp_results = None
+        icp_results, TCO_before_icp = None, None
         if self.icp and depth is not None:
+            TCO_before_icp = TCO
             with clock("icp"):
                 TCO, icp_results = self._icp(TCO, K, depth, det, (H, W))
         valid = valid_poses(TCO)
@@ -627,7 +644,7 @@ class Predictor:
             warnings.warn(f"Predictor: invalid poses (NaN/inf, not a rotation or behind the camera) of "
                           f"detections {bad} (obj_ids {det.obj_ids[bad].tolist()}); flagged valid=False", RuntimeWarning, stacklevel=2)
         return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
-                             TCO_coarse, self._timings(clock, t_start), icp_results)
+                             TCO_coarse, self._timings(clock, t_start), icp_results, TCO_before_icp)
 
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: _Clock) -> tuple[Tensor, Tensor]:
         """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU."""

@@ -96,6 +96,9 @@ class ObjectTemplates:
     boxes: np.ndarray
     depth: float
 
+    def __post_init__(self) -> None:
+        self.areas = self.grids.sum(axis=(1, 2), dtype=np.int64)  # soft IoU: union = areas + observed - inter
+
 
 @dataclass
 class TemplateMatches:
@@ -164,7 +167,7 @@ class SilhouetteTemplates:
     def _cache_path(self, obj_id: int) -> Path | None:
         if self.cache_dir is None or obj_id not in self.model_keys:
             return None
-        settings = f"{self.model_keys[obj_id]}|{self.diameters[obj_id]!r}|{self.n_rotations}|{self.grid}|{self.seed}|" \
+        settings = f"{self.model_keys[obj_id]}|{self.diameters[obj_id]:.6f}|{self.n_rotations}|{self.grid}|{self.seed}|" \
                    f"{TEMPLATE_FOCAL}|{TEMPLATE_SIZE}|{TEMPLATE_FILL}|{BOX_MARGIN}"
         key = hashlib.sha256(settings.encode()).hexdigest()[:20]
         return self.cache_dir / f"templates_obj{obj_id:06d}_{key}.npz"
@@ -201,10 +204,10 @@ class SilhouetteTemplates:
             if not np.isfinite(box).all():
                 found[i] = False
                 continue
-            observed = occupancy_grids(virtual[None], box[None], self.grid)[0].astype(np.int32)
+            observed = occupancy_grids(virtual[None], box[None], self.grid)[0]
             t = self.templates(int(obj_ids[i]))
             inter = np.minimum(t.grids, observed).sum(axis=(1, 2), dtype=np.int64)
-            union = np.maximum(t.grids, observed).sum(axis=(1, 2), dtype=np.int64)
+            union = t.areas + int(observed.sum(dtype=np.int64)) - inter  # min + max = a + b
             iou = inter / np.maximum(union, 1)
             best = np.argsort(-iou, kind="stable")[:k]
             scores[i] = iou[best]
@@ -255,7 +258,7 @@ def _write_templates(path: Path, t: ObjectTemplates) -> None:
     """Atomically (temporary file + rename), so that an interrupted run leaves no half file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
-    np.savez(tmp, rotations=t.rotations, grids=t.grids, boxes=t.boxes, depth=np.float64(t.depth))
+    np.savez_compressed(tmp, rotations=t.rotations, grids=t.grids, boxes=t.boxes, depth=np.float64(t.depth))
     os.replace(tmp, path)
 
 
