@@ -108,6 +108,22 @@ def test_detector_icp_and_an_object_subset(setup, tmp_path):
     assert {e["obj_id"] for e in pred["estimates"]} <= {1, 5}
 
 
+def test_templates_start_without_a_coarse_checkpoint(setup, tmp_path, capsys):
+    """--start templates --refiner CKPT: the detector's masks matched to silhouette templates."""
+    assert cli(_args(setup, tmp_path, "--start", "templates", "--candidates", "1", "--refiner", str(setup["refiner"]),
+                     "--detector", str(setup["detector"]), "--templates-cache", str(tmp_path / "tc"))) == 0
+    pred = json.loads((tmp_path / "predictions.json").read_text())
+    assert 0 < len(pred["estimates"]) <= 5
+    for e in pred["estimates"]:
+        assert np.isfinite(e["t"]).all() and 100 < e["t"][2] < 5000  # mm, in front of the camera
+        R = np.array(e["R"])
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+    # BOP22 detections without "segmentation": the masks the templates need are missing
+    assert cli(_args(setup, tmp_path, "--start", "templates", "--refiner", str(setup["refiner"]),
+                     "--detections", str(setup["dir"] / "dets.json"))) == 2
+    assert "segmentation" in capsys.readouterr().err
+
+
 def test_python_api(setup):
     from cosy_lite.bop import io
     from cosy_lite.inference.command_predict import predict_image

@@ -58,6 +58,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", type=_obj_ids, default=None, metavar="1,5", help="estimate only these objects")
     p.add_argument("--icp", action="store_true", help="refine with --depth (point-to-plane ICP)")
     p.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
+    p.add_argument("--start", default="coarse", choices=["coarse", "templates"],
+                   help="start poses: coarse network (default) or silhouette templates matched to the detection "
+                        "masks (no coarse checkpoint needed)")
+    p.add_argument("--candidates", type=int, default=1, metavar="K",
+                   help="--start templates: templates tried per detection, the flow refiner's most confident kept")
+    p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
+                   help="--start templates: keep the rendered templates in DIR between runs")
     p.add_argument("--device", default="cpu", help="torch backend: cpu or cuda (default cpu)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the networks")
     p.add_argument("--scene-id", type=int, default=0, help="scene_id of the CSV rows (default 0)")
@@ -96,8 +103,9 @@ def models_folder(name_or_dir: str) -> Path:
 def _argument_problem(args: argparse.Namespace) -> str | None:
     if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector)):
         return "give either checkpoints (--coarse/--refiner/--detector) or --onnx EXPORT_DIR, not both"
-    if args.onnx is None and args.coarse is None:
-        return "give --coarse CKPT [--refiner CKPT --detector CKPT] (torch) or --onnx EXPORT_DIR (onnxruntime)"
+    if args.onnx is None and args.coarse is None and not (args.start == "templates" and args.refiner is not None):
+        return ("give --coarse CKPT [--refiner CKPT --detector CKPT] (torch), --start templates --refiner CKPT, "
+                "or --onnx EXPORT_DIR (onnxruntime)")
     if args.onnx is None and args.detector is None and args.detections is None:
         return "no detections: give --detector CKPT or --detections FILE.json"
     if args.icp and args.depth is None:
@@ -105,18 +113,20 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     if args.depth_scale is not None and not (np.isfinite(args.depth_scale) and args.depth_scale > 0):
         return f"--depth-scale {args.depth_scale}: expected a number > 0 (depth value * S = mm)"
     for name, value, least in (("--threads", args.threads, 1), ("--n-refiner-iters", args.n_refiner_iters, 0),
+                               ("--candidates", args.candidates, 1),
                                ("--scene-id", args.scene_id, 0), ("--im-id", args.im_id, 0)):
         if value is not None and value < least:
             return f"{name} {value}: expected an integer >= {least}"
     return None
 
 
-def _given_detections(path: Path, known: list[int]):
-    """The detections of the one image in a BOP22 file (objects without a 3D model are an error)."""
+def _given_detections(path: Path, known: list[int], with_masks: bool = False):
+    """The detections of the one image in a BOP22 file (objects without a 3D model are an error);
+    with_masks: decode their ``segmentation`` (needed by ``--start templates``)."""
     from cosy_lite.bop.detections import read_detections_json
     from cosy_lite.errors import BopFormatError
 
-    per_image = read_detections_json(path, valid_obj_ids=known)
+    per_image = read_detections_json(path, valid_obj_ids=known, with_masks=with_masks)
     if len(per_image) > 1:
         raise BopFormatError(path, "scene_id/image_id", f"detections of {len(per_image)} images "
                              f"(e.g. {sorted(per_image)[:3]}); predict takes one image")
@@ -169,7 +179,8 @@ def _load_inputs(args: argparse.Namespace):
 def _build_predictor(args: argparse.Namespace, models_dir: Path):
     from cosy_lite.inference.predictor import Predictor, SetupError
 
-    common = dict(models_dir=models_dir, n_refiner_iterations=args.n_refiner_iters, icp=args.icp, obj_ids=args.objects)
+    common = dict(models_dir=models_dir, n_refiner_iterations=args.n_refiner_iters, icp=args.icp, obj_ids=args.objects,
+                  start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache)
     if args.onnx is not None:
         p = Predictor.from_onnx(args.onnx, threads=args.threads, detector=args.detections is None, **common)
         if args.detections is None and p.detector is None:
@@ -209,7 +220,8 @@ def run(args: argparse.Namespace) -> int:
     if args.detections is not None:
         from cosy_lite.bop.io import load_models_info
 
-        detections = _given_detections(args.detections, sorted(load_models_info(models_dir / "models_info.json")))
+        detections = _given_detections(args.detections, sorted(load_models_info(models_dir / "models_info.json")),
+                                       with_masks=args.start == "templates")
     pred = predict_image(predictor, rgb, K, depth, detections, args.objects or predictor.obj_ids)
     est = pred.estimates
     rows = [PoseEstimate(args.scene_id, args.im_id, int(est.obj_ids[i]), float(est.scores[i]), est.TCO[i].numpy(),
