@@ -111,6 +111,129 @@ def eval_split(name: str, split: str | None = None) -> str:
     return split or (params.test_split if params is not None else "test")
 
 
+ImageKey = tuple[int, int]
+
+
+class _ImageEvaluation:
+    """The per-image part of :func:`evaluate` (errors of every target of some images), built from
+    the same arguments in every process that runs it."""
+
+    def __init__(self, dataset_root: str | Path, results_csv: str | Path, split: str | None, name: str | None,
+                 max_sym_disc_step: float, sym_zero_angle: bool, visib_gt_min: float, auc: bool):
+        from cosy_lite.bop.params import DATASETS
+        from cosy_lite.geometry.symmetries import symmetry_transforms
+
+        self.ds = ds = BopDataset(Path(dataset_root), name or "")
+        self.params = params = DATASETS.get(ds.name)
+        self.split = eval_split(ds.name, split)
+        self.delta = (params.vsd_delta_mm if params is not None else 15.0) * 1e-3
+        self.estimates = read_results_csv(results_csv)
+        self.top = _top_estimates(self.estimates)
+        self.by_image = _targets_by_image(ds.test_targets())
+        self.visib_gt_min, self.auc = visib_gt_min, auc
+        info = ds.models_info
+        target_objs = sorted({t.obj_id for ts in self.by_image.values() for t in ts})
+        self.meshes = {o: ds.load_model(o, eval=True) for o in target_objs}
+        self.objs = {
+            o: ObjectErrors.from_model(np.asarray(self.meshes[o].vertices, dtype=np.float64),
+                                       symmetry_transforms(info[o], max_sym_disc_step, include_zero_angle=sym_zero_angle),
+                                       info[o].diameter)
+            for o in target_objs
+        }
+        self.sp = ds.split_params(self.split)
+        self.renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
+
+    def renderer(self, w: int, h: int) -> WindowDepthRenderer:
+        if (w, h) not in self.renderers:
+            self.renderers[(w, h)] = WindowDepthRenderer(
+                {o: (np.asarray(m.vertices), np.asarray(m.faces)) for o, m in self.meshes.items()}, w, h)
+        return self.renderers[(w, h)]
+
+    def run(self, keys: list[ImageKey], progress: bool = False) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
+        """(image -> the errors of its targets in target-file order, the first image's width)."""
+        from tqdm import tqdm
+
+        ds, split, sp = self.ds, self.split, self.sp
+        out: dict[ImageKey, list[TargetErrors]] = {}
+        im_width = 0
+        pool = ThreadPoolExecutor(1)  # MSSD/MSPD/ADD/ADI beside the VSD rendering (see ImageErrors.target)
+        pending: list[Future] = []  # their jobs, awaited once every image is rendered
+        try:
+            bar = tqdm(keys, desc="eval", unit="im", disable=not progress)
+            n_eval = 0
+            for scene_id, im_id in bar:
+                rec = ds.image(split, scene_id, im_id)
+                if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
+                    raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
+                                         "GT info (visib_fract) needed for every GT instance")
+                load_depth = _depth_loader(ds, rec)
+                size = sp.im_size if sp is not None else load_depth().shape[::-1]  # (width, height)
+                im_width = im_width or size[0]
+                image = ImageErrors(self.renderer(*size), load_depth, rec.camera.K, self.delta, pool, add_adi=self.auc)
+                errors = out[(scene_id, im_id)] = []
+                for t in self.by_image[(scene_id, im_id)]:
+                    ests = self.top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
+                    gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
+                    pair = image.target(t.obj_id, self.objs[t.obj_id], ests, [rec.gt[i].TCO for i in gt_idx], gt_idx,
+                                        pending)
+                    gt_valid = valid_gt(np.array([rec.gt_info[i].visib_fract for i in gt_idx]), t.inst_count,
+                                        self.visib_gt_min)
+                    errors.append(TargetErrors(scene_id, im_id, t.obj_id, t.inst_count,
+                                               np.array([e.score for e in ests], dtype=np.float64), gt_valid,
+                                               pair.vsd, pair.mssd, pair.mspd, pair.add, pair.adi))
+                    n_eval += len(ests)
+                bar.set_postfix(estimates=n_eval, refresh=False)
+            for job in pending:  # errors filled in place into ``out``; re-raises a job's exception
+                job.result()
+        finally:
+            pool.shutdown(cancel_futures=True)
+        return out, im_width
+
+    def close(self) -> None:
+        for r in self.renderers.values():
+            r.close()
+        self.renderers.clear()
+
+
+_WORKER: _ImageEvaluation | None = None  # a worker process's evaluation (evaluate(workers > 1))
+
+
+def _init_worker(*args) -> None:
+    global _WORKER
+    _WORKER = _ImageEvaluation(*args)
+
+
+def _run_worker(keys: list[ImageKey]) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
+    assert _WORKER is not None
+    return _WORKER.run(keys)
+
+
+def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int,
+                     progress: bool) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
+    """:meth:`_ImageEvaluation.run` over ``keys`` in ``workers`` spawned processes (each its own
+    renderer and object tables), in chunks of consecutive images."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from tqdm import tqdm
+
+    n_chunks = min(len(keys), 4 * workers)
+    chunks = [keys[i * len(keys) // n_chunks:(i + 1) * len(keys) // n_chunks] for i in range(n_chunks)]
+    out: dict[ImageKey, list[TargetErrors]] = {}
+    widths: dict[int, int] = {}
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                             initargs=args) as ex:
+        futures = {ex.submit(_run_worker, c): k for k, c in enumerate(chunks)}
+        bar = tqdm(total=len(keys), desc=f"eval ({workers} processes)", unit="im", disable=not progress)
+        for f in as_completed(futures):
+            errors, width = f.result()
+            out.update(errors)
+            widths[futures[f]] = width
+            bar.update(len(chunks[futures[f]]))
+        bar.close()
+    return out, widths[0] if widths else 0
+
+
 def evaluate(
     dataset_root: str | Path,
     results_csv: str | Path,
@@ -121,6 +244,7 @@ def evaluate(
     visib_gt_min: float = VISIB_GT_MIN,
     progress: bool = True,
     auc: bool = False,
+    workers: int = 1,
 ) -> EvalResult:
     """Compute VSD, MSSD and MSPD (and ADD, ADI with ``auc``) of every evaluated estimate and score them (BOP19).
 
@@ -138,78 +262,32 @@ def evaluate(
         progress: show a tqdm bar over images.
         auc: also compute ADD and ADI and score the YCB-V AUC of ADD(-S) and of ADI (PoseCNN's metric;
             not part of BOP19, which the toolkit's evaluation computes without; ~40 % more time).
+        workers: processes computing the errors (images split between them; the same scores as 1).
     """
-    from tqdm import tqdm
-
-    from cosy_lite.bop.params import DATASETS
-    from cosy_lite.geometry.symmetries import symmetry_transforms
-
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     t0 = time.perf_counter()
-    ds = BopDataset(Path(dataset_root), name or "")
-    params = DATASETS.get(ds.name)
-    split = eval_split(ds.name, split)
-    delta = (params.vsd_delta_mm if params is not None else 15.0) * 1e-3
-    estimates = read_results_csv(results_csv)
-    top = _top_estimates(estimates)
-    by_image = _targets_by_image(ds.test_targets())
-
-    info = ds.models_info
+    args = (dataset_root, results_csv, split, name, max_sym_disc_step, sym_zero_angle, visib_gt_min, auc)
+    ev = _ImageEvaluation(*args)
+    keys = sorted(ev.by_image)
+    if workers == 1 or len(keys) < 2:
+        try:
+            errors, im_width = ev.run(keys, progress)
+        finally:
+            ev.close()
+    else:
+        errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress)
+    out = [te for k in keys for te in errors[k]]
+    n_eval = sum(len(te.scores) for te in out)
+    params, info = ev.params, ev.ds.models_info
     # ADD-S objects of the AUC: the table's list (the toolkit's dataset_params), else those with symmetries.
     symmetric = (params.symmetric_obj_ids if params is not None and params.symmetric_obj_ids
                  else tuple(o for o, i in info.items() if i.is_symmetric))
-    target_objs = sorted({t.obj_id for ts in by_image.values() for t in ts})
-    meshes = {o: ds.load_model(o, eval=True) for o in target_objs}
-    objs = {
-        o: ObjectErrors.from_model(np.asarray(meshes[o].vertices, dtype=np.float64),
-                                   symmetry_transforms(info[o], max_sym_disc_step, include_zero_angle=sym_zero_angle),
-                                   info[o].diameter)
-        for o in target_objs
-    }
-    sp = ds.split_params(split)
-    im_width = sp.im_size[0] if sp is not None else 0
-    renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
-
-    def renderer(w: int, h: int) -> WindowDepthRenderer:
-        if (w, h) not in renderers:
-            renderers[(w, h)] = WindowDepthRenderer(
-                {o: (np.asarray(m.vertices), np.asarray(m.faces)) for o, m in meshes.items()}, w, h)
-        return renderers[(w, h)]
-
-    out: list[TargetErrors] = []
-    n_eval = 0
-    pool = ThreadPoolExecutor(1)  # MSSD/MSPD/ADD/ADI beside the VSD rendering (see ImageErrors.target)
-    pending: list[Future] = []  # their jobs, awaited once every image is rendered
-    try:
-        bar = tqdm(sorted(by_image.items()), desc="eval", unit="im", disable=not progress)
-        for (scene_id, im_id), im_targets in bar:
-            rec = ds.image(split, scene_id, im_id)
-            if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
-                raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
-                                     "GT info (visib_fract) needed for every GT instance")
-            load_depth = _depth_loader(ds, rec)
-            size = sp.im_size if sp is not None else load_depth().shape[::-1]  # (width, height)
-            im_width = im_width or size[0]
-            image = ImageErrors(renderer(*size), load_depth, rec.camera.K, delta, pool, add_adi=auc)
-            for t in im_targets:
-                ests = top.get((scene_id, im_id, t.obj_id), [])[: t.inst_count]
-                gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == t.obj_id]
-                pair = image.target(t.obj_id, objs[t.obj_id], ests, [rec.gt[i].TCO for i in gt_idx], gt_idx,
-                                    pending)
-                gt_valid = valid_gt(np.array([rec.gt_info[i].visib_fract for i in gt_idx]), t.inst_count, visib_gt_min)
-                out.append(TargetErrors(scene_id, im_id, t.obj_id, t.inst_count,
-                                        np.array([e.score for e in ests], dtype=np.float64), gt_valid,
-                                        pair.vsd, pair.mssd, pair.mspd, pair.add, pair.adi))
-                n_eval += len(ests)
-            bar.set_postfix(estimates=n_eval, refresh=False)
-        for job in pending:  # errors filled in place into ``out``; re-raises a job's exception
-            job.result()
-    finally:
-        pool.shutdown(cancel_futures=True)
-        for r in renderers.values():
-            r.close()
-    scores = score_targets(out, {o: d.diameter for o, d in objs.items()}, im_width, symmetric, auc=auc)
-    return EvalResult(ds.name, split, str(results_csv), len(estimates), n_eval, delta, im_width, visib_gt_min, scores,
-                      out, time.perf_counter() - t0)
+    if ev.sp is not None:
+        im_width = ev.sp.im_size[0]
+    scores = score_targets(out, {o: d.diameter for o, d in ev.objs.items()}, im_width, symmetric, auc=auc)
+    return EvalResult(ev.ds.name, ev.split, str(results_csv), len(ev.estimates), n_eval, ev.delta, im_width,
+                      visib_gt_min, scores, out, time.perf_counter() - t0)
 
 
 def _depth_loader(ds: BopDataset, rec):
