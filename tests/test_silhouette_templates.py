@@ -44,7 +44,7 @@ def scene():
     meshes = _meshes()
     renderer = PyrenderRenderer(meshes=meshes)
     ids = [1, 2, 1, 1]
-    t = np.array([[0.0, 0.0, 0.6], [0.13, -0.08, 0.7], [-0.17, 0.1, 0.65], [0.1, 0.08, 0.55]])  # 0-16 deg off-axis, inside the image
+    t = np.array([[0.0, 0.0, 0.6], [0.13, -0.08, 0.7], [-0.17, 0.1, 0.65], [0.1, 0.08, 0.55]])  # 0-17 deg off-axis, inside the image
     R_allo = random_rotations(len(ids), seed=11)
     T_true = np.tile(np.eye(4), (len(ids), 1, 1))
     T_true[:, :3, 3] = t
@@ -83,8 +83,8 @@ def test_matching_recovers_the_pose_on_and_off_the_optical_axis(scene):
     assert _rotation_error_deg(T[:, :3, :3], G[:, :3, :3]).max() < 1.0
     ray = lambda t: t / np.linalg.norm(t, axis=-1, keepdims=True)  # noqa: E731
     off = np.linalg.norm(ray(T[:, :3, 3]) - ray(G[:, :3, 3]), axis=-1)  # rad (x 600 = px)
-    assert off[0] < 0.001 and off.max() < 0.006  # measured 0.0006 on the axis, 0.0041 at 24 deg off it
-    assert (np.abs(T[:, 2, 3] - G[:, 2, 3]) / G[:, 2, 3]).max() < 0.03  # depth from the box sizes, 3 %
+    assert off[0] < 0.001 and off.max() < 0.005  # measured 0.6 mrad on the axis, at most 2.9 at 12-17 deg off it
+    assert (np.abs(T[:, 2, 3] - G[:, 2, 3]) / G[:, 2, 3]).max() < 0.02  # depth from the box sizes: measured <= 0.7 %
     rot = T[:, :3, :3]
     assert np.allclose(rot @ np.swapaxes(rot, 1, 2), np.eye(3), atol=1e-9)
 

@@ -23,6 +23,7 @@ import time
 from collections import defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -121,7 +122,6 @@ class _ImageEvaluation:
     def __init__(self, dataset_root: str | Path, results_csv: str | Path, split: str | None, name: str | None,
                  max_sym_disc_step: float, sym_zero_angle: bool, visib_gt_min: float, auc: bool):
         from cosy_lite.bop.params import DATASETS
-        from cosy_lite.geometry.symmetries import symmetry_transforms
 
         self.ds = ds = BopDataset(Path(dataset_root), name or "")
         self.params = params = DATASETS.get(ds.name)
@@ -131,17 +131,27 @@ class _ImageEvaluation:
         self.top = _top_estimates(self.estimates)
         self.by_image = _targets_by_image(ds.test_targets())
         self.visib_gt_min, self.auc = visib_gt_min, auc
-        info = ds.models_info
-        target_objs = sorted({t.obj_id for ts in self.by_image.values() for t in ts})
-        self.meshes = {o: ds.load_model(o, eval=True) for o in target_objs}
-        self.objs = {
-            o: ObjectErrors.from_model(np.asarray(self.meshes[o].vertices, dtype=np.float64),
-                                       symmetry_transforms(info[o], max_sym_disc_step, include_zero_angle=sym_zero_angle),
-                                       info[o].diameter)
-            for o in target_objs
-        }
+        self.target_objs = sorted({t.obj_id for ts in self.by_image.values() for t in ts})
+        self._symmetries = (max_sym_disc_step, sym_zero_angle)
         self.sp = ds.split_params(self.split)
         self.renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
+
+    @cached_property
+    def meshes(self) -> dict:
+        return {o: self.ds.load_model(o, eval=True) for o in self.target_objs}
+
+    @cached_property
+    def objs(self) -> dict[int, ObjectErrors]:
+        """Per target object its error tables (built where the errors are computed: with
+        ``workers`` > 1 in each worker process only)."""
+        from cosy_lite.geometry.symmetries import symmetry_transforms
+
+        step, zero_angle = self._symmetries
+        info = self.ds.models_info
+        return {o: ObjectErrors.from_model(np.asarray(self.meshes[o].vertices, dtype=np.float64),
+                                           symmetry_transforms(info[o], step, include_zero_angle=zero_angle),
+                                           info[o].diameter)
+                for o in self.target_objs}
 
     def renderer(self, w: int, h: int) -> WindowDepthRenderer:
         if (w, h) not in self.renderers:
@@ -285,7 +295,7 @@ def evaluate(
                  else tuple(o for o, i in info.items() if i.is_symmetric))
     if ev.sp is not None:
         im_width = ev.sp.im_size[0]
-    scores = score_targets(out, {o: d.diameter for o, d in ev.objs.items()}, im_width, symmetric, auc=auc)
+    scores = score_targets(out, {o: info[o].diameter for o in ev.target_objs}, im_width, symmetric, auc=auc)
     return EvalResult(ev.ds.name, ev.split, str(results_csv), len(ev.estimates), n_eval, ev.delta, im_width,
                       visib_gt_min, scores, out, time.perf_counter() - t0)
 

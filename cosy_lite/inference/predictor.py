@@ -53,7 +53,7 @@ from cosy_lite.models import initial_pose_np
 from cosy_lite.models.detector import detect
 from cosy_lite.models.initial_pose import initial_pose_from_boxes
 from cosy_lite.models.render_and_compare import iterate_poses, refine_and_score
-from cosy_lite.models.silhouette_templates import SilhouetteTemplates
+from cosy_lite.models.silhouette_templates import SilhouetteTemplates, file_key
 
 
 class SetupError(CosyLiteError):
@@ -348,8 +348,6 @@ def _silhouette_templates(start: str, models: ObjectModels, objects: Any, render
     of each object's mesh file."""
     if start != "templates":
         return None
-    from cosy_lite.models.silhouette_templates import file_key
-
     keys = {} if cache_dir is None else {i: file_key(models.models_dir / f"obj_{int(i):06d}.ply") for i in objects.obj_ids}
     return SilhouetteTemplates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
                                cache_dir=cache_dir, model_keys=keys)
