@@ -13,10 +13,11 @@ With ``--phases`` one more run per size splits the time by phase: the evaluator 
 around each phase's functions; the phases therefore add up to that run's wall time, not to
 the (overlapped) timed runs.
 
-Each size is timed per variant, alternating within each repeat: ``bop19`` (the default evaluation:
-VSD, MSSD, MSPD, as the toolkit's BOP19), ``+auc`` (``cosy-lite eval --auc``: also ADD and ADI for
-the YCB-V AUC) and ``bop19-2proc`` (``cosy-lite eval --workers 2``: the images split between two
-processes; its CPU column counts the parent process only). ``--variants`` restricts that.
+Each size is timed per variant, alternating within each repeat: ``bop19`` (VSD, MSSD, MSPD, as the
+toolkit's BOP19, in one process: ``cosy-lite eval --workers 1``), ``+auc`` (``cosy-lite eval --auc``:
+also ADD and ADI for the YCB-V AUC), ``bop19-2proc`` (``--workers 2``: the images split between two
+processes; its CPU column counts the parent process only) and ``bop19-auto`` (``cosy-lite eval``'s
+default: one process per core, at most 4, one per 10 images). ``--variants`` restricts that.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ import numpy as np
 
 REPEAT_SCENE_OFFSET = 1000  # repeated scenes get ids scene_id + k * 1000
 # name -> evaluate(**kwargs): the default evaluation, with the AUC, and the default on 2 processes
-VARIANTS = {"bop19": {"auc": False}, "+auc": {"auc": True}, "bop19-2proc": {"auc": False, "workers": 2}}
+VARIANTS = {"bop19": {"auc": False}, "+auc": {"auc": True}, "bop19-2proc": {"auc": False, "workers": 2},
+            "bop19-auto": {"auc": False, "workers": None}}
 
 
 def noisy_estimates(ds, n: int, seed: int = 0, split: str = "test"):
@@ -160,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--phases", action="store_true", help="one more, serial run per size: the time per phase")
     ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
                     help="bop19: VSD, MSSD, MSPD (the default evaluation); +auc: also ADD, ADI (eval --auc); "
-                         "bop19-2proc: the default on 2 processes (eval --workers 2)")
+                         "bop19-2proc: on 2 processes (eval --workers 2); bop19-auto: cosy-lite eval's default "
+                         "number of processes (one per core, at most 4)")
     args = ap.parse_args(argv)
     name = BopDataset(args.dataset).name
     rows, phase_rows = [], []

@@ -178,7 +178,7 @@ def test_eval_of_a_missing_split_is_refused(root: Path, capsys):
 
 
 @pytest.mark.parametrize("flag, value", [("--max-sym-disc-step", "0"), ("--max-sym-disc-step", "nan"),
-                                         ("--visib-gt-min", "1.5")])
+                                         ("--visib-gt-min", "1.5"), ("--workers", "0")])
 def test_eval_option_out_of_range_is_refused(root: Path, capsys, flag: str, value: str):
     csv = _gt_csv(root)
     rc, text = _cli(capsys, "eval", "--dataset", str(root), "--results", str(csv), flag, value, "--no-progress")

@@ -426,3 +426,17 @@ def test_error_in_a_deferred_job_is_raised(root: Path, monkeypatch):
             m.setattr(ObjectErrors, method, broken)
             with pytest.raises(FloatingPointError, match="model errors failed"):
                 _evaluate(root, _gt_estimates(), auc=auc)
+
+
+def test_auto_workers_follow_cores_and_split_size(monkeypatch):
+    """cosy-lite eval's default (workers=None): one process per core, at most 4, one per 10 images."""
+    import os
+
+    from cosy_lite.eval import evaluator
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert [evaluator.auto_workers(n) for n in (1, 19, 20, 100, 10_000)] == [1, 1, 2, 2, 2]
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    assert [evaluator.auto_workers(n) for n in (9, 35, 100)] == [1, 3, 4]
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert evaluator.auto_workers(1000) == 1

@@ -32,9 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--auc", action="store_true",
                    help="also compute ADD and ADI and report the YCB-V AUC of ADD(-S) and of ADI (PoseCNN's "
                         "metric, not part of BOP19; about 40 %% more time)")
-    p.add_argument("--workers", type=int, default=1, metavar="N",
+    p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="processes computing the errors (6d-localization; the images are split between them, "
-                        "the scores are the same; default 1)")
+                        "the scores are the same; default: one per core, at most 4, and 1 for fewer than 20 images)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -103,7 +103,7 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     if not (args.visib_gt_min == -1.0 or 0.0 <= args.visib_gt_min <= 1.0):
         return (f"--visib-gt-min {args.visib_gt_min}: expected -1 (BOP19: the inst_count most visible) "
                 "or a fraction in [0, 1]")
-    if getattr(args, "workers", 1) < 1:
+    if getattr(args, "workers", None) is not None and args.workers < 1:
         return f"--workers {args.workers}: expected an integer >= 1"
     return None
 
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_6d_detection(args, root)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
-                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", 1))
+                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None))
     print(format_table(result))
     out = args.out or args.results.with_name(args.results.stem + "_eval")
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")

@@ -19,6 +19,7 @@ The rules of bop_toolkit ``eval_bop19_pose.py`` (with ``eval_calc_errors.py``,
 
 from __future__ import annotations
 
+import os
 import time
 from collections import defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -205,6 +206,17 @@ class _ImageEvaluation:
         self.renderers.clear()
 
 
+MAX_AUTO_WORKERS = 4  # workers=None: one process per available core, at most this many ...
+MIN_IMAGES_PER_WORKER = 10  # ... and no more than one per this many images (a spawned worker costs ~2 s to start)
+
+
+def auto_workers(n_images: int) -> int:
+    """Processes for ``evaluate(workers=None)``: one per core this process may use, at most
+    :data:`MAX_AUTO_WORKERS`, one per :data:`MIN_IMAGES_PER_WORKER` images (1 for a small split)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, MAX_AUTO_WORKERS, n_images // MIN_IMAGES_PER_WORKER))
+
+
 _WORKER: _ImageEvaluation | None = None  # a worker process's evaluation (evaluate(workers > 1))
 
 
@@ -254,7 +266,7 @@ def evaluate(
     visib_gt_min: float = VISIB_GT_MIN,
     progress: bool = True,
     auc: bool = False,
-    workers: int = 1,
+    workers: int | None = 1,
 ) -> EvalResult:
     """Compute VSD, MSSD and MSPD (and ADD, ADI with ``auc``) of every evaluated estimate and score them (BOP19).
 
@@ -272,14 +284,17 @@ def evaluate(
         progress: show a tqdm bar over images.
         auc: also compute ADD and ADI and score the YCB-V AUC of ADD(-S) and of ADI (PoseCNN's metric;
             not part of BOP19, which the toolkit's evaluation computes without; ~40 % more time).
-        workers: processes computing the errors (images split between them; the same scores as 1).
+        workers: processes computing the errors (images split between them; the same scores as 1);
+            None: :func:`auto_workers` of the number of images.
     """
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1 (or None: automatic), got {workers}")
     t0 = time.perf_counter()
     args = (dataset_root, results_csv, split, name, max_sym_disc_step, sym_zero_angle, visib_gt_min, auc)
     ev = _ImageEvaluation(*args)
     keys = sorted(ev.by_image)
+    if workers is None:
+        workers = auto_workers(len(keys))
     if workers == 1 or len(keys) < 2:
         try:
             errors, im_width = ev.run(keys, progress)
