@@ -41,6 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--start templates: the K best templates each get one refiner iteration, the most "
                          "confident goes on (K > 1 needs a flow refiner; default 1)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
+    ap.add_argument("--icp-candidates", default="all", choices=["all", "chosen"],
+                    help="with --icp and --candidates K > 1: ICP every candidate (the chosen one after all refiner "
+                         "iterations, the others after one) and keep the one whose depth agrees best with the "
+                         "measured depth (all, default), or ICP the RGB choice only (chosen)")
     ap.add_argument("--also-before-icp", default=None, metavar="METHOD",
                     help="with --icp: also write the poses before ICP as METHOD_DATASET-SPLIT.csv (the RGB-only "
                          "results of the same run, their time without ICP)")
@@ -105,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.results import results_filename
     from cosy_lite.inference.bop_run import run_on_split
+    from cosy_lite.inference.icp import IcpConfig
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
     from cosy_lite.synth.command import dataset_folder
@@ -131,11 +136,12 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = BopDataset(root)
+    icp_config = IcpConfig(verify_candidates=args.icp_candidates == "all")
     if args.backend == "onnx":
         predictor = Predictor.from_onnx(
             args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
-            threads=args.threads, precision=args.precision, detector=args.detections is None, start=args.start,
-            n_candidates=args.candidates, templates_cache=args.templates_cache)
+            icp_config=icp_config, threads=args.threads, precision=args.precision, detector=args.detections is None,
+            start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache)
         if args.detections is None and predictor.detector is None:
             raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
@@ -146,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             detector=args.detector if args.detections is None else None, coarse=args.coarse,
             refiner=args.refiner, dataset=dataset, device=device,
             n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
-            precision=args.precision, start=args.start, n_candidates=args.candidates,
+            icp_config=icp_config, precision=args.precision, start=args.start, n_candidates=args.candidates,
             templates_cache=args.templates_cache)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,

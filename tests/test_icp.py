@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from cosy_lite.inference.icp import IcpConfig, IcpResult, refine_pose_icp, refine_poses_icp, rotation_angle_deg
+from cosy_lite.inference.icp import (IcpConfig, IcpResult, depth_agreement, refine_pose_icp, refine_poses_icp,
+                                    rotation_angle_deg)
 from cosy_lite.render.renderer import PyrenderRenderer
 
 MUSTARD, DRILL, PLANE, OCCLUDER, CAN = 5, 15, 90, 91, 92  # YCB-V mustard bottle and power drill: no symmetry
@@ -210,3 +211,42 @@ def test_config_loads_from_yaml(tmp_path):
     cfg = load_config(IcpConfig, path, ["voxel_size=0.005"])
     assert cfg.max_correspondence_distances == [0.03, 0.01] and cfg.robust_kernel == "huber" and cfg.voxel_size == 0.005
     assert isinstance(IcpResult(np.eye(4), True).timings, dict)
+
+
+def test_depth_agreement_ranks_the_true_pose_first(renderer):
+    """The GT pose explains mask and depth (score ~1, occluded part included); a 1 cm shift, a turn of
+    the drill, a pose floating 5 cm in front, and an empty mask score lower, in that order of harm."""
+    depth, masks = _scene(renderer, [MUSTARD, DRILL], occluder=True)
+    gt = np.stack([GT[MUSTARD], GT[DRILL]])
+    ids = [MUSTARD, DRILL]
+    s_gt = depth_agreement(gt, K, depth, masks, renderer, ids)
+    assert s_gt.min() > 0.95, s_gt  # measured 1.0 (the masks come from the same renders)
+    shifted = gt.copy()
+    shifted[:, 0, 3] += 0.01
+    turned = np.stack([_perturbed(gt[k], 30.0, 0.0, seed=k) for k in range(2)])
+    floating = gt.copy()
+    floating[:, :3, 3] *= ((gt[:, 2, 3] - 0.05) / gt[:, 2, 3])[:, None]  # 5 cm nearer along the ray: same place in the image
+    scores = {name: depth_agreement(T, K, depth, masks, renderer, ids)
+              for name, T in (("shifted", shifted), ("turned", turned), ("floating", floating))}
+    for name, s in scores.items():
+        assert (s < s_gt - 0.1).all(), (name, s, s_gt)
+    assert (scores["floating"] < 0.2).all(), scores["floating"]  # no pixel within 2 cm
+    empty = masks.copy()
+    empty[1] = False
+    assert depth_agreement(gt, K, depth, empty, renderer, ids)[1] == 0.0
+    behind = gt.copy()
+    behind[0, 2, 3] = -0.5
+    assert depth_agreement(behind, K, depth, masks, renderer, ids)[0] == 0.0
+
+
+def test_rejection_kinds_name_the_limit(renderer):
+    from cosy_lite.inference.icp import icp_rejection_kind
+
+    depth, masks = _scene(renderer, [MUSTARD])
+    start = GT[MUSTARD].copy()
+    start[2, 3] += 0.2
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    assert icp_rejection_kind(res.reason) == "max_translation"
+    assert icp_rejection_kind("too few measured depth points in the mask (3 < 50)") == "too few measured depth points in the mask"
+    assert icp_rejection_kind("empty mask") == "empty mask"
+    assert icp_rejection_kind("fitness 0.100 < min_fitness 0.5") == "min_fitness"

@@ -15,6 +15,7 @@ a detections JSON (BOP: detection time counts); oracle detections cost nothing. 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -28,6 +29,7 @@ from cosy_lite.bop.detections import (MIN_BOX_SIZE_PX, Detections, degenerate_bo
 from cosy_lite.bop.results import PoseEstimate, results_filename, write_results_csv
 from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
 from cosy_lite.errors import BopFormatError
+from cosy_lite.inference.icp import icp_rejection_kind
 from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, SetupError
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
 
@@ -101,6 +103,7 @@ class RunSummary:
     timings: dict[str, float] = field(default_factory=dict)
     icp_accepted: int = 0
     icp_runs: int = 0
+    icp_rejections: Counter = field(default_factory=Counter)  # why ICP kept the input pose (icp_rejection_kind)
     no_depth: int = 0  # images without a depth file (ICP asked for but skipped)
     n_degenerate: int = 0
     vis_paths: list[Path] = field(default_factory=list)
@@ -118,7 +121,8 @@ class RunSummary:
                f"{self.n_invalid} invalid poses dropped) in {self.seconds:.1f} s",
                f"time per image: mean {np.mean(self.image_times or [0.0]):.3f} s; ms per image: {per}"]
         if self.icp_runs:
-            out.append(f"ICP accepted {self.icp_accepted} of {self.icp_runs} poses")
+            why = ", ".join(f"{n} {kind}" for kind, n in self.icp_rejections.most_common())
+            out.append(f"ICP accepted {self.icp_accepted} of {self.icp_runs} poses" + (f"; rejected: {why}" if why else ""))
         if self.n_degenerate:
             out.append(f"WARNING: {self.n_degenerate} detections with a box side under {MIN_BOX_SIZE_PX} px "
                        "(or non-finite) skipped: no pose estimated for them")
@@ -260,6 +264,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         if est.icp is not None:
             summary.icp_runs += len(est.icp)
             summary.icp_accepted += sum(r.accepted for r in est.icp)
+            summary.icp_rejections.update(icp_rejection_kind(r.reason) for r in est.icp if not r.accepted)
         good = est.only_valid()
         for i in range(len(good)):
             estimates.append(PoseEstimate(scene_id, im_id, int(good.obj_ids[i]), float(good.scores[i]),

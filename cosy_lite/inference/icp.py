@@ -29,6 +29,7 @@ is touched per object (only the mask's bounding box is found with two ``any`` re
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol, Sequence
@@ -70,6 +71,11 @@ class IcpConfig:
     max_translation: float = 0.05  # m, reject updates moving the object origin more
     min_fitness: float = 0.5  # least fraction of model points with a measured one within the last distance
     max_inlier_rmse: float = 0.004  # m, largest RMSE of those correspondences
+    # with several start candidates per object (templates, K > 1): ICP each and keep the one whose
+    # rendered depth agrees best with the measured depth (:func:`depth_agreement`); False: only the
+    # candidate the RGB pipeline chose
+    verify_candidates: bool = True
+    agreement_tolerance: float = 0.02  # m, rendered and measured depth agree within this
 
     def __post_init__(self) -> None:
         if len(self.max_correspondence_distances) != len(self.iterations) or not self.iterations:
@@ -106,6 +112,18 @@ class IcpResult:
     delta_translation: float = float("nan")
     seconds: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
+
+
+LIMITS = ("max_rotation_deg", "max_translation", "min_fitness", "max_inlier_rmse")  # IcpConfig's acceptance limits
+
+
+def icp_rejection_kind(reason: str) -> str:
+    """A short class of an :attr:`IcpResult.reason`, for counting: the limit it names, else its
+    words before the first number or parenthesis (e.g. "too few measured depth points in the mask")."""
+    for name in LIMITS:
+        if name in reason:
+            return name
+    return re.split(r"[\d(]", reason, maxsplit=1)[0].strip() or "unknown"
 
 
 # name -> robust kernel class of open3d.pipelines.registration, each with a scale k (m)
@@ -261,6 +279,58 @@ def refine_poses_icp(
         results[i].timings["render"] = render_share
         results[i].seconds = sum(results[i].timings.values())
     return results  # type: ignore[return-value]
+
+
+def depth_agreement(
+    TCO: np.ndarray, K: np.ndarray, depth_measured: np.ndarray, masks: np.ndarray,
+    renderer: MeshRenderer, obj_ids: Sequence[int], tolerance: float = 0.02, window_margin: int = 16,
+) -> np.ndarray:
+    """``[N]`` in [0, 1]: how well each pose explains its object's mask and measured depth.
+
+    Per object, over the window of :func:`refine_poses_icp` (projected model box U mask box): the
+    pixels where the model, rendered at the pose, would be seen (drawn, and not behind the measured
+    surface by more than ``tolerance``: that is an occluder) or the mask is, and of those the share
+    where both are and the depths agree within ``tolerance`` (unknown depth in the mask: agrees).
+    A pose whose model floats in front of the measured surface outside the mask, leaves part of
+    the mask unexplained, or is turned so that its depth disagrees scores lower: the VSD criterion
+    with the mask standing in for the unknown GT. 0 for an empty mask or a pose behind the camera.
+    Args as :func:`refine_poses_icp` (masks [N,H,W] bool); all windows are rendered in one call.
+    """
+    TCO = np.asarray(TCO, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    depth = np.asarray(depth_measured)
+    masks = np.asarray(masks).astype(bool, copy=False)
+    obj_ids = [int(i) for i in obj_ids]
+    _check_inputs(TCO, K, depth, masks, obj_ids)
+    H, W = depth.shape
+    scores = np.zeros(len(obj_ids))
+    windows: dict[int, tuple[int, int, int, int]] = {}
+    for i in range(len(obj_ids)):
+        mask_box = _mask_box(masks[i])
+        if mask_box is not None and TCO[i, 2, 3] > 0:
+            win = _window(TCO[i], K, _box_corners(renderer.mesh(obj_ids[i])), mask_box, (H, W), window_margin)
+            if win is not None:
+                windows[i] = win
+    if not windows:
+        return scores
+    todo = sorted(windows)
+    h = max(windows[i][3] - windows[i][1] for i in todo)
+    w = max(windows[i][2] - windows[i][0] for i in todo)
+    K_crops = np.repeat(K[None], len(todo), axis=0)
+    K_crops[:, 0, 2] -= [windows[i][0] for i in todo]
+    K_crops[:, 1, 2] -= [windows[i][1] for i in todo]
+    rendered = renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
+    for j, i in enumerate(todo):
+        x0, y0, x1, y1 = windows[i]
+        r = np.asarray(rendered[j][: y1 - y0, : x1 - x0], dtype=np.float64)
+        m = np.asarray(depth[y0:y1, x0:x1], dtype=np.float64)
+        in_mask = masks[i, y0:y1, x0:x1]
+        known = (m > 0) & np.isfinite(m)
+        drawn = r > 0
+        seen = drawn & (~known | (r <= m + tolerance))
+        agree = in_mask & drawn & (~known | (np.abs(r - m) <= tolerance))
+        scores[i] = agree.sum() / max(int((in_mask | seen).sum()), 1)
+    return scores
 
 
 def refine_pose_icp(

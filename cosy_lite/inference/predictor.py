@@ -628,14 +628,19 @@ class Predictor:
                              "(give detections with masks, e.g. oracle or BOP22 JSON detections with 'segmentation')")
         with _flush_denormals():
             if self.numpy_loop:
-                TCO_coarse, TCO = (torch.from_numpy(T) for T in self._poses_np(rgb, K.numpy(), det, clock))
+                TCO_coarse, TCO, hypotheses = self._poses_np(rgb, K.numpy(), det, clock)
+                TCO_coarse, TCO = torch.from_numpy(TCO_coarse), torch.from_numpy(TCO)
+                hypotheses = None if hypotheses is None else torch.from_numpy(hypotheses)
             else:
-                TCO_coarse, TCO = self._poses(rgb, K, det, clock)
+                TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock)
         icp_results, TCO_before_icp = None, None
         if self.icp and depth is not None:
             TCO_before_icp = TCO
             with clock("icp"):
-                TCO, icp_results = self._icp(TCO, K, depth, det, (H, W))
+                if hypotheses is not None and self.icp_config.verify_candidates:
+                    TCO, icp_results = self._icp_hypotheses(hypotheses, K, depth, det, (H, W))
+                else:
+                    TCO, icp_results = self._icp(TCO, K, depth, det, (H, W))
         valid = valid_poses(TCO)
         if not valid.all():
             bad = (~valid).nonzero().flatten().tolist()
@@ -644,8 +649,11 @@ class Predictor:
         return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
                              TCO_coarse, self._timings(clock, t_start), icp_results, TCO_before_icp)
 
-    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: _Clock) -> tuple[Tensor, Tensor]:
-        """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU."""
+    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections,
+               clock: _Clock) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, and with several template
+        candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose, the others
+        after their one refiner iteration (None with one candidate)."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         N = len(det)
@@ -658,6 +666,7 @@ class Predictor:
         points = self.objects.points[rows.to(self.device)]
         renderer = _TimedRenderer(self.renderer, clock)
         n_refiner = self.n_refiner_iterations
+        hypotheses, pick = None, None
         if self.start == "coarse":
             TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
                                                self.objects.diameters[rows.to(self.device)].double()).float()
@@ -669,8 +678,8 @@ class Predictor:
             if candidates.shape[1] == 1:
                 TCO_init = TCO_coarse = candidates[:, 0].float()
             else:
-                TCO_coarse, TCO_init = self._choose_candidate(candidates.float(), image, K_b, ids, points,
-                                                              renderer, clock)
+                TCO_coarse, TCO_init, hypotheses, pick = self._choose_candidate(candidates.float(), image, K_b, ids,
+                                                                                points, renderer, clock)
                 n_refiner -= 1
             steps = []
         if self.refiner is not None:
@@ -696,12 +705,17 @@ class Predictor:
         clock.sync()
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
-        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu())
+        if hypotheses is not None:
+            hypotheses = hypotheses.clone()
+            hypotheses[torch.arange(N, device=TCO.device), pick] = TCO
+            hypotheses = orthonormalise(hypotheses.cpu().double().reshape(-1, 4, 4)).reshape(hypotheses.shape)
+        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
 
     def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
-                          renderer: Any, clock: _Clock) -> tuple[Tensor, Tensor]:
-        """(chosen candidate [N,4,4], it after one refiner iteration [N,4,4]) of ``candidates
-        [N,k,4,4]``: the one with the highest flow confidence (invalid candidates are not run)."""
+                          renderer: Any, clock: _Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(chosen candidate [N,4,4], it after one refiner iteration [N,4,4], every candidate after one
+        iteration [N,k,4,4], the choice [N]) of ``candidates [N,k,4,4]``: the one with the highest
+        flow confidence (invalid candidates are not run)."""
         N, k = candidates.shape[:2]
         flat = candidates.reshape(N * k, 4, 4)
         owner = torch.arange(N, device=flat.device).repeat_interleave(k)
@@ -718,12 +732,13 @@ class Predictor:
             refined[live], score[live] = new.to(refined.dtype), conf
         pick = score.view(N, k).argmax(dim=1)
         at = torch.arange(N, device=flat.device)
-        return candidates[at, pick], refined.view(N, k, 4, 4)[at, pick]
+        refined = refined.view(N, k, 4, 4)
+        return candidates[at, pick], refined[at, pick], refined, pick
 
     def _poses_np(self, rgb: np.ndarray, K: np.ndarray, det: Detections,
-                  clock: _Clock) -> tuple[np.ndarray, np.ndarray]:
+                  clock: _Clock) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """As :meth:`_poses` with numpy networks and no torch op per iteration (one image, ``K [3,3]``):
-        (after coarse, after refiner) ``[N,4,4]`` float64."""
+        (after coarse, after refiner) ``[N,4,4]`` float64 and the hypotheses ``[N,k,4,4]`` or None."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         lookup, all_points, all_diameters = self._object_arrays
@@ -735,6 +750,7 @@ class Predictor:
         points = all_points[rows]
         renderer = _TimedRenderer(self.renderer, clock)
         n_refiner = self.n_refiner_iterations
+        hypotheses, pick = None, None
         if self.start == "coarse":
             TCO = initial_pose_np.initial_pose_from_boxes(det.boxes.double().numpy(), K_b, all_diameters[rows])
             TCO_coarse = TCO
@@ -745,7 +761,8 @@ class Predictor:
             if candidates.shape[1] == 1:
                 TCO = TCO_coarse = candidates[:, 0]
             else:
-                TCO_coarse, TCO = self._choose_candidate_np(candidates, image, K_b, ids, points, renderer, clock)
+                TCO_coarse, TCO, hypotheses, pick = self._choose_candidate_np(candidates, image, K_b, ids, points,
+                                                                              renderer, clock)
                 n_refiner -= 1
             steps = []
         if self.refiner is not None:
@@ -765,10 +782,15 @@ class Predictor:
                 TCO_coarse = TCO
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
-        return iterate_np.orthonormalise(TCO_coarse), iterate_np.orthonormalise(TCO)
+        if hypotheses is not None:
+            hypotheses = hypotheses.copy()
+            hypotheses[np.arange(N), pick] = TCO
+            hypotheses = iterate_np.orthonormalise(hypotheses.reshape(-1, 4, 4)).reshape(hypotheses.shape)
+        return iterate_np.orthonormalise(TCO_coarse), iterate_np.orthonormalise(TCO), hypotheses
 
     def _choose_candidate_np(self, candidates: np.ndarray, image: np.ndarray, K_b: np.ndarray, ids: list[int],
-                             points: np.ndarray, renderer: Any, clock: _Clock) -> tuple[np.ndarray, np.ndarray]:
+                             points: np.ndarray, renderer: Any,
+                             clock: _Clock) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`_choose_candidate` with numpy networks and ``image [H,W,3]``."""
         N, k = candidates.shape[:2]
         flat = candidates.reshape(N * k, 4, 4)
@@ -783,23 +805,14 @@ class Predictor:
                 net, image, K_b[own], flat[live], [ids[i] for i in own], points[own], renderer,
                 self.refiner.crop_resolution, self.batch_size)
         pick = score.reshape(N, k).argmax(axis=1)
-        return candidates[np.arange(N), pick], refined.reshape(N, k, 4, 4)[np.arange(N), pick]
+        refined = refined.reshape(N, k, 4, 4)
+        return candidates[np.arange(N), pick], refined[np.arange(N), pick], refined, pick
 
     def _icp(self, TCO: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
              size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
         from cosy_lite.inference.icp import refine_poses_icp
 
-        depth = np.asarray(depth, dtype=np.float32)
-        if depth.shape != size:
-            raise ValueError(f"depth must be [H,W] = {size} (as rgb), in metres; got {depth.shape}")
-        if det.masks is not None:
-            masks = det.masks.cpu().numpy().astype(bool)
-        else:
-            if not self._warned_box_masks:
-                warnings.warn("Predictor: detections without masks; ICP uses the detection boxes as masks",
-                              RuntimeWarning, stacklevel=3)
-                self._warned_box_masks = True
-            masks = _box_masks(det.boxes, size)
+        depth, masks = self._icp_inputs(depth, det, size)
         ok = valid_poses(TCO)
         results: list[IcpResult | None] = [None] * len(TCO)
         idx = ok.nonzero().flatten().tolist()
@@ -815,6 +828,39 @@ class Predictor:
                 results[i] = IcpResult(TCO[i].numpy().copy(), False, "invalid pose before ICP")
         TCO_new = torch.from_numpy(np.stack([r.TCO for r in results])).double()
         return orthonormalise(TCO_new), results  # type: ignore[return-value]
+
+    def _icp_inputs(self, depth: np.ndarray, det: Detections, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """(depth [H,W] float32 m, masks [N,H,W] bool: the detections' masks, or their boxes)."""
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.shape != size:
+            raise ValueError(f"depth must be [H,W] = {size} (as rgb), in metres; got {depth.shape}")
+        if det.masks is not None:
+            return depth, det.masks.cpu().numpy().astype(bool)
+        if not self._warned_box_masks:
+            warnings.warn("Predictor: detections without masks; ICP uses the detection boxes as masks",
+                          RuntimeWarning, stacklevel=4)
+            self._warned_box_masks = True
+        return depth, _box_masks(det.boxes, size)
+
+    def _icp_hypotheses(self, hypotheses: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
+                        size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
+        """ICP of every hypothesis ``[N,k,4,4]``; per detection the refined hypothesis whose depth
+        agrees best with the measured depth (:func:`~cosy_lite.inference.icp.depth_agreement`) is kept."""
+        from cosy_lite.inference.icp import depth_agreement
+
+        N, k = hypotheses.shape[:2]
+        flat = hypotheses.reshape(N * k, 4, 4).double()
+        flat_det = det.select(torch.arange(N).repeat_interleave(k))
+        refined, results = self._icp(flat, K, depth, flat_det, size)
+        depth, masks = self._icp_inputs(depth, flat_det, size)
+        scores = np.full(N * k, -1.0)
+        ok = valid_poses(refined).nonzero().flatten().tolist()
+        if ok:
+            scores[ok] = depth_agreement(refined[ok].numpy(), K.numpy(), depth, masks[ok], self.renderer,
+                                         [int(flat_det.obj_ids[i]) for i in ok], self.icp_config.agreement_tolerance,
+                                         self.icp_config.window_margin)
+        best = scores.reshape(N, k).argmax(axis=1) + np.arange(N) * k
+        return refined[torch.from_numpy(best)], [results[i] for i in best]
 
     @staticmethod
     def _timings(clock: _Clock, t_start: float) -> dict[str, float]:
