@@ -12,7 +12,8 @@ is already there, so an interrupted demo continues where it stopped:
    is trained only with ``DemoConfig(start="coarse")``;
 3. infer on the test split: detector -> templates -> refiner -> depth ICP, and the same with oracle
    (ground-truth) detections, so detector and pose errors can be told apart; each run also writes its
-   poses before ICP (the RGB-only results: ``infer.py --also-before-icp``);
+   poses before ICP (the RGB-only results: ``infer.py --also-before-icp``); the two runs side by side,
+   one core each (logs in ``OUT/logs/``);
 4. evaluate every CSV (``cosy-lite eval``) and print one AR table (also written to
    ``OUT/demo_summary.md`` and ``OUT/demo_ar.png``), with where the overlays are.
 """
@@ -132,7 +133,7 @@ def train_command(cfg: DemoConfig, root: Path, model: str) -> list[str]:
 
 
 def _run_parallel(cmds: list[list[str]], whats: list[str], logs: list[Path]) -> None:
-    """Run ``cmds`` at the same time, one thread each (stdout/stderr to ``logs``); fail if any fails."""
+    """Run ``cmds`` at the same time, one OpenMP thread each (stdout/stderr to ``logs``); fail if any fails."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     procs = []
     for cmd, what, log in zip(cmds, whats, logs):
@@ -185,17 +186,30 @@ def _mark_done(cfg: DemoConfig, model: str) -> None:
 
 
 def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
+    """The unfinished ``infer.py`` runs side by side (``cfg.threads`` shared between them: much of a
+    run is single-threaded rendering, ICP and template matching), then every evaluation."""
+    todo = []
     for run in infer_runs(cfg):
         csv = _csv(cfg, run.method)
         wanted = [csv] + ([_csv(cfg, run.before_icp[0])] if run.before_icp is not None else [])
         if not all(p.is_file() for p in wanted):
-            start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
-                     else ["--start", "templates", "--candidates", str(cfg.n_candidates),
-                           "--templates-cache", str(cfg.runs / "templates")])
-            _run(_py("infer.py", "--dataset", str(root), *start,
-                     "--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"), "--n-refiner-iters", str(cfg.n_refiner_iters),
-                     "--threads", str(cfg.threads), "--method", run.method, "--out", str(csv.parent), *run.args),
-                 f"infer: {run.label}" + (f" (and {run.before_icp[1]})" if run.before_icp else ""))
+            todo.append(run)
+    threads = max(1, cfg.threads // max(1, len(todo)))
+    cmds, whats = [], []
+    for run in todo:
+        csv = _csv(cfg, run.method)
+        start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
+                 else ["--start", "templates", "--candidates", str(cfg.n_candidates),
+                       "--templates-cache", str(cfg.runs / "templates")])
+        cmds.append(_py("infer.py", "--dataset", str(root), *start,
+                        "--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"), "--n-refiner-iters",
+                        str(cfg.n_refiner_iters), "--threads", str(threads), "--method", run.method,
+                        "--out", str(csv.parent), *(["--no-progress"] if len(todo) > 1 else []), *run.args))
+        whats.append(f"infer: {run.label}" + (f" (and {run.before_icp[1]})" if run.before_icp else ""))
+    if len(cmds) == 1:
+        _run(cmds[0], whats[0])
+    elif cmds:
+        _run_parallel(cmds, whats, [cfg.out / "logs" / f"infer_{run.method}.log" for run in todo])
     results = []
     for run in scored_runs(cfg):
         csv = _csv(cfg, run.method)

@@ -110,3 +110,25 @@ def test_infer_and_eval_runs_the_missing_steps_with_the_demo_checkpoints(tmp_pat
     assert first[first.index("--coarse") + 1] == str(cfg.runs / "coarse" / "checkpoint.pt")
     assert first[first.index("--detector") + 1] == str(cfg.runs / "detector" / "checkpoint.pt")
     assert first[first.index("--n-refiner-iters") + 1] == "4"
+
+
+def test_the_two_inference_runs_go_side_by_side_on_one_core_each(tmp_path, monkeypatch):
+    cfg = _cfg(tmp_path)
+    runs: list = []
+    monkeypatch.setattr(demo, "_run", lambda cmd, what, env=None: runs.append(("alone", cmd)))
+    monkeypatch.setattr(demo, "_run_parallel", lambda cmds, whats, logs: runs.append(("parallel", cmds, logs)))
+    monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
+    demo.infer_and_eval(cfg, tmp_path / "data")
+    kind, cmds, logs = runs[0]
+    assert kind == "parallel" and len(cmds) == 2 and len(logs) == 2 and logs[0] != logs[1]
+    for cmd in cmds:
+        assert cmd[cmd.index("--threads") + 1] == "1" and "--no-progress" in cmd
+    assert all(r[0] == "alone" and "eval" in r[1] for r in runs[1:])  # then the evaluations
+    (cfg.out / "results").mkdir(parents=True)
+    for name in ("cosyliteicp", "cosylite"):  # the detector run is done: the oracle run alone, on both cores
+        (cfg.out / "results" / f"{name}_{cfg.dataset}-test.csv").write_text("")
+    runs.clear()
+    demo.infer_and_eval(cfg, tmp_path / "data")
+    kind, cmd = runs[0]
+    assert kind == "alone" and "oracle" in cmd and cmd[cmd.index("--threads") + 1] == "2"
