@@ -41,10 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--start templates: the K best templates each get one refiner iteration, the most "
                          "confident goes on (K > 1 needs a flow refiner; default 1)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
-    ap.add_argument("--icp-candidates", default="all", choices=["all", "chosen"],
-                    help="with --icp and --candidates K > 1: ICP every candidate (the chosen one after all refiner "
-                         "iterations, the others after one) and keep the one whose depth agrees best with the "
-                         "measured depth (all, default), or ICP the RGB choice only (chosen)")
+    ap.add_argument("--icp-set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="ICP settings (cosy_lite.inference.icp.IcpConfig), e.g. max_translation=0.1 or "
+                         "verify_candidates=false (with --candidates K > 1, by default every candidate is ICP'd and "
+                         "the one whose depth agrees best with the measured depth is kept; false: the RGB choice only)")
     ap.add_argument("--also-before-icp", default=None, metavar="METHOD",
                     help="with --icp: also write the poses before ICP as METHOD_DATASET-SPLIT.csv (the RGB-only "
                          "results of the same run, their time without ICP)")
@@ -109,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.results import results_filename
     from cosy_lite.inference.bop_run import run_on_split
+    from cosy_lite.config import load_config
+    from cosy_lite.errors import ConfigError
     from cosy_lite.inference.icp import IcpConfig
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
@@ -118,6 +120,11 @@ def run(args: argparse.Namespace) -> int:
     problem = _backend_problem(args) or _argument_problem(args)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
+        return 2
+    try:
+        icp_config = load_config(IcpConfig, None, args.icp_set)
+    except (ConfigError, ValueError) as e:
+        print(f"error: --icp-set: {e}", file=sys.stderr)
         return 2
     method = args.method.replace("_", "")
     if method != args.method:
@@ -136,7 +143,6 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = BopDataset(root)
-    icp_config = IcpConfig(verify_candidates=args.icp_candidates == "all")
     if args.backend == "onnx":
         predictor = Predictor.from_onnx(
             args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,

@@ -121,6 +121,9 @@ def test_cosy_lite_generate_bad_override(tmp_path, capsys):
     (["--n-refiner-iters", "-1"], "--n-refiner-iters -1: expected an integer >= 0"),
     (["--vis", "-2"], "--vis -2: expected an integer >= 0"),
     (["--candidates", "0"], "--candidates 0: expected an integer >= 1"),
+    (["--icp", "--icp-set", "max_translation=far"], "--icp-set: command-line override 'max_translation=far' [max_translation]"),
+    (["--icp", "--icp-set", "verify_candidatez=false"], "[verify_candidatez]: Key 'verify_candidatez' not in 'IcpConfig'"),
+    (["--icp", "--icp-set", "iterations=[5]"], "max_correspondence_distances"),
 ])
 def test_infer_py_bad_number(tmp_path, capsys, args, words):
     import infer

@@ -844,8 +844,10 @@ class Predictor:
 
     def _icp_hypotheses(self, hypotheses: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
                         size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
-        """ICP of every hypothesis ``[N,k,4,4]``; per detection the refined hypothesis whose depth
-        agrees best with the measured depth (:func:`~cosy_lite.inference.icp.depth_agreement`) is kept."""
+        """ICP of every hypothesis ``[N,k,4,4]``; per detection, of the k hypotheses and their k ICP
+        results, the pose whose depth agrees best with the measured depth
+        (:func:`~cosy_lite.inference.icp.depth_agreement`) is kept: an ICP result that explains the
+        depth worse than its start is never kept over it (its IcpResult is then marked not accepted)."""
         from cosy_lite.inference.icp import depth_agreement
 
         N, k = hypotheses.shape[:2]
@@ -853,14 +855,25 @@ class Predictor:
         flat_det = det.select(torch.arange(N).repeat_interleave(k))
         refined, results = self._icp(flat, K, depth, flat_det, size)
         depth, masks = self._icp_inputs(depth, flat_det, size)
-        scores = np.full(N * k, -1.0)
-        ok = valid_poses(refined).nonzero().flatten().tolist()
+        poses = torch.cat([refined, flat])  # [2Nk]: the ICP results, then their starts
+        scores = np.full(2 * N * k, -1.0)
+        ok = valid_poses(poses).nonzero().flatten().tolist()
         if ok:
-            scores[ok] = depth_agreement(refined[ok].numpy(), K.numpy(), depth, masks[ok], self.renderer,
-                                         [int(flat_det.obj_ids[i]) for i in ok], self.icp_config.agreement_tolerance,
+            ids = flat_det.obj_ids.tolist() * 2
+            scores[ok] = depth_agreement(poses[ok].numpy(), K.numpy(), depth, np.concatenate([masks, masks])[ok],
+                                         self.renderer, [int(ids[i]) for i in ok], self.icp_config.agreement_tolerance,
                                          self.icp_config.window_margin)
-        best = scores.reshape(N, k).argmax(axis=1) + np.arange(N) * k
-        return refined[torch.from_numpy(best)], [results[i] for i in best]
+        scores = scores.reshape(2, N, k)
+        use_icp = scores[0] >= scores[1]  # [N,k]: ties (e.g. a rejected ICP, which returns its start) keep ICP's result
+        best = np.maximum(scores[0], scores[1]).argmax(axis=1)  # [N]
+        chosen, out = [], []
+        for i, j in enumerate(best):
+            f = i * k + j
+            chosen.append(refined[f] if use_icp[i, j] else flat[f])
+            r = results[f]
+            out.append(r if use_icp[i, j] else replace(r, TCO=flat[f].numpy().copy(), accepted=False,
+                                                       reason="ICP result agrees less with the depth than its start"))
+        return orthonormalise(torch.stack(chosen)), out
 
     @staticmethod
     def _timings(clock: _Clock, t_start: float) -> dict[str, float]:
