@@ -27,10 +27,10 @@ import numpy as np
 from cosy_lite.export.manifest import (
     POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, ModelEntry, OnnxModelError, parse_json_meta,
 )
+from cosy_lite.models.detection_masks import binary_masks
 from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE
 
 PROVIDERS = ("CPUExecutionProvider",)
-MASK_THRESHOLD = 0.5  # mask probability -> bool (as cosy_lite.models.detector)
 POSE_OUTPUTS = 9
 FLOW_CHANNELS = 3  # a flow refiner's output [B,3,h/stride,w/stride]: dx, dy, confidence
 
@@ -205,7 +205,7 @@ class OnnxDetector:
         image = np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32) / np.float32(255.0)
         boxes, labels, scores, masks = self.session.run(None, {self.input_name: image})
         return (boxes.astype(np.float32, copy=False), self._table[labels.astype(np.int64)],
-                scores.astype(np.float32, copy=False), masks[:, 0] > MASK_THRESHOLD)
+                scores.astype(np.float32, copy=False), binary_masks(masks[:, 0]))
 
     def detect(self, rgb: np.ndarray) -> Any:
         """:class:`~cosy_lite.bop.detections.Detections` of ``rgb`` (``time_s``: seconds of the network)."""

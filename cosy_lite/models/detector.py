@@ -33,8 +33,8 @@ from torchvision.ops.feature_pyramid_network import FeaturePyramidNetwork, LastL
 
 from cosy_lite.bop.detections import Detections
 from cosy_lite.models.backbones import norm_layer
+from cosy_lite.models.detection_masks import binary_masks
 
-MASK_THRESHOLD = 0.5  # mask probability -> bool
 BOX_POOL = 7  # torchvision's box RoIAlign output size
 
 
@@ -298,8 +298,9 @@ class Detector(nn.Module):
         return [self._detections(o) for o in self.net(images)]
 
     def _detections(self, out: dict[str, torch.Tensor]) -> Detections:
+        masks = torch.from_numpy(binary_masks(out["masks"][:, 0].cpu().numpy())).to(out["masks"].device)
         return Detections(boxes=out["boxes"], obj_ids=self.label_map.obj_ids_of(out["labels"]),
-                          scores=out["scores"], masks=out["masks"][:, 0] > MASK_THRESHOLD)
+                          scores=out["scores"], masks=masks)
 
 
 def _unwrap(model: nn.Module) -> Detector:

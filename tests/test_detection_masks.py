@@ -1,0 +1,24 @@
+"""Detection masks from mask probabilities (``models/detection_masks.py``): 0.5 as torchvision,
+and a mask empty at 0.5 taken at half its own peak instead of nothing."""
+
+import numpy as np
+import pytest
+
+from cosy_lite.models.detection_masks import binary_masks
+
+
+def test_threshold_and_the_fallback_for_masks_empty_at_one_half():
+    p = np.zeros((3, 4, 5), dtype=np.float32)
+    p[0, 1:3, 1:4] = 0.9  # a confident mask: thresholded at 0.5 as it is
+    p[0, 0, 0] = 0.3
+    p[1, 1:3, 2:4] = 0.46  # peak 0.46 < 0.5 (the demo detector's typical empty mask): >= 0.23 kept
+    p[1, 0, 0] = 0.2
+    p[2, 2, 2] = 0.04  # peak under MIN_PEAK: stays empty
+    m = binary_masks(p)
+    assert m.dtype == bool and m.shape == p.shape
+    assert m[0].sum() == 6 and not m[0, 0, 0]
+    assert m[1].sum() == 4 and m[1, 1:3, 2:4].all() and not m[1, 0, 0]
+    assert not m[2].any()
+    assert binary_masks(np.zeros((0, 4, 5))).shape == (0, 4, 5)
+    with pytest.raises(ValueError, match=r"\[N,H,W\]"):
+        binary_masks(np.zeros((4, 5)))
