@@ -93,7 +93,7 @@ def test_recovers_1cm_5deg(renderer, seed):
     assert res.fitness > 0.95 and res.inlier_rmse < 2 * NOISE
     assert res.delta_translation == pytest.approx(0.01, abs=0.002) and res.delta_rotation_deg == pytest.approx(5.0, abs=1.0)
     assert res.n_points >= 500 and res.n_model_points >= 500
-    assert set(res.timings) == {"render", "clouds", "normals", "icp"} and res.seconds == pytest.approx(sum(res.timings.values()))
+    assert set(res.timings) == {"render", "clouds", "normals", "icp", "agreement"} and res.seconds == pytest.approx(sum(res.timings.values()))
 
 
 def test_recovers_3cm_depth_error_and_occlusion(renderer):
@@ -125,7 +125,8 @@ def test_two_objects_one_render_call(renderer):
 
     starts = np.stack([_perturbed(GT[MUSTARD], 5.0, 0.01, 5), _perturbed(GT[DRILL], 5.0, 0.01, 6)])
     results = refine_poses_icp(starts, K, depth, masks, Counting(), [MUSTARD, DRILL])
-    assert len(calls) == 1 and calls[0][0] < SIZE[0] and calls[0][1] < SIZE[1]  # one call, windows smaller than the image
+    # one call for ICP, one for the agreement check of the results; windows smaller than the image
+    assert len(calls) == 2 and all(c[0] < SIZE[0] and c[1] < SIZE[1] for c in calls)
     for res, obj_id in zip(results, [MUSTARD, DRILL]):
         e_t, e_r = _errors(res.TCO, GT[obj_id])
         print(f"obj {obj_id}: {e_t:.3f} mm, {e_r:.3f} deg, {res.seconds * 1000:.1f} ms")
@@ -250,3 +251,34 @@ def test_rejection_kinds_name_the_limit(renderer):
     assert icp_rejection_kind("too few measured depth points in the mask (3 < 50)") == "too few measured depth points in the mask"
     assert icp_rejection_kind("empty mask") == "empty mask"
     assert icp_rejection_kind("fitness 0.100 < min_fitness 0.5") == "min_fitness"
+
+
+def test_an_icp_result_that_agrees_less_than_its_start_is_rejected(renderer):
+    """The agreement check on real renders: a result 3 cm off, from the GT start, is put back (reason
+    and agreement of the start); a result at GT, from a start 3 cm off, stays."""
+    from cosy_lite.inference.icp import _check_agreement, _window
+
+    depth, masks = _scene(renderer, [MUSTARD, DRILL])
+    gt = np.stack([GT[MUSTARD], GT[DRILL]])
+    off = gt.copy()
+    off[:, 0, 3] += 0.03
+    starts = np.stack([gt[0], off[1]])
+    results = [IcpResult(off[0].copy(), True), IcpResult(gt[1].copy(), True)]
+    cfg = IcpConfig()
+    windows, rendered = [], {}
+    for i, o in enumerate([MUSTARD, DRILL]):
+        from cosy_lite.inference.icp import _box_corners, _mask_box
+
+        windows.append(_window(starts[i], K, _box_corners(renderer.mesh(o)), _mask_box(masks[i]), SIZE, cfg.window_margin))
+        x0, y0, x1, y1 = windows[i]
+        Kc = K.copy()
+        Kc[0, 2] -= x0
+        Kc[1, 2] -= y0
+        rendered[i] = renderer.render([o], starts[i][None], Kc, (y1 - y0, x1 - x0), depth_only=True).depth[0]
+    _check_agreement(results, rendered, windows, starts, K, depth, masks, renderer, [MUSTARD, DRILL], cfg)
+    assert not results[0].accepted and "agrees less with the depth than its start" in results[0].reason
+    np.testing.assert_array_equal(results[0].TCO, gt[0])
+    assert results[0].agreement > 0.95
+    assert results[1].accepted and results[1].agreement > 0.95
+    np.testing.assert_array_equal(results[1].TCO, gt[1])
+    assert set(results[0].timings) == {"agreement"}

@@ -239,30 +239,6 @@ def test_icp_keeps_the_candidate_the_depth_confirms(scene):
     assert (_box_error(np.stack([first[i].TCO[:3, :3] for i in boxes]), G) > 15).all()  # ICP alone: within 15 deg
 
 
-def test_an_icp_result_worse_than_its_start_is_not_kept(scene, monkeypatch):
-    """ICP made to move every pose 3 cm sideways (and call it accepted): the starts, which explain the
-    depth better, are kept, and their results say ICP was not accepted."""
-    from dataclasses import replace
-
-    from cosy_lite.inference.icp import IcpConfig
-
-    p = _predictor(scene, None, 0, 1)
-    p.icp, p.icp_config = True, IcpConfig()
-    honest = p._icp
-
-    def sideways(TCO, *args):
-        out, results = honest(TCO, *args)
-        moved = out.clone()
-        moved[:, 0, 3] += 0.03
-        return moved, [replace(r, TCO=m.numpy(), accepted=True, reason="") for r, m in zip(results, moved)]
-
-    monkeypatch.setattr(p, "_icp", sideways)
-    starts = torch.from_numpy(scene["T_true"][:, None].repeat(2, axis=1))  # [4,2,4,4]: the GT, twice
-    TCO, results = p._icp_hypotheses(starts, torch.from_numpy(K), _depth(scene), _detections(scene), (H, W))
-    np.testing.assert_allclose(TCO.numpy(), scene["T_true"], atol=1e-9)
-    assert not any(r.accepted for r in results) and all("agrees less" in r.reason for r in results)
-
-
 @pytest.mark.parametrize("backend", ["torch", "onnx"])
 def test_icp_of_every_candidate_leaves_the_rgb_poses_alone(scene, tmp_path, backend):
     """3 candidates, one refiner iteration each (an untrained refiner): with ICP on and a depth image,

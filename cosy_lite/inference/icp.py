@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol, Sequence
 
 import numpy as np
@@ -71,11 +71,13 @@ class IcpConfig:
     max_translation: float = 0.05  # m, reject updates moving the object origin more
     min_fitness: float = 0.5  # least fraction of model points with a measured one within the last distance
     max_inlier_rmse: float = 0.004  # m, largest RMSE of those correspondences
-    # with several start candidates per object (templates, K > 1): ICP each and keep the one whose
-    # rendered depth agrees best with the measured depth (:func:`depth_agreement`); False: only the
-    # candidate the RGB pipeline chose
-    verify_candidates: bool = True
+    # keep an ICP result only when its rendered depth agrees with the measured depth at least as well
+    # as its start's (:func:`depth_agreement`): a check on the result itself, beside the limits above
+    check_agreement: bool = True
     agreement_tolerance: float = 0.02  # m, rendered and measured depth agree within this
+    # the Predictor, with several start candidates per object (templates, K > 1): ICP each and keep
+    # the one whose depth agrees best; False: only the candidate the RGB pipeline chose
+    verify_candidates: bool = True
 
     def __post_init__(self) -> None:
         if len(self.max_correspondence_distances) != len(self.iterations) or not self.iterations:
@@ -97,8 +99,9 @@ class IcpResult:
     accepted); fitness: fraction of model points with a measured point within the last stage's
     distance; inlier_rmse (m) of those; n_points / n_model_points: measured / model points after
     downsampling; delta_rotation_deg, delta_translation (m): the update ICP proposed (NaN if none);
-    seconds: this object's cost (its share of the batched render + its own clouds, normals, ICP),
-    broken down in ``timings`` (render, clouds, normals, icp).
+    agreement: :func:`depth_agreement` of ``TCO`` with ``cfg.check_agreement`` (-1 otherwise);
+    seconds: this object's cost (its share of the batched render + its own clouds, normals, ICP,
+    agreement check), broken down in ``timings`` (render, clouds, normals, icp, agreement).
     """
 
     TCO: np.ndarray
@@ -110,6 +113,7 @@ class IcpResult:
     n_model_points: int = 0
     delta_rotation_deg: float = float("nan")
     delta_translation: float = float("nan")
+    agreement: float = -1.0  # depth_agreement of the returned pose (-1: not computed)
     seconds: float = 0.0
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -277,8 +281,50 @@ def refine_poses_icp(
         syms = None if symmetries is None or symmetries[i] is None else np.asarray(symmetries[i], dtype=np.float64)
         results[i] = _refine_one(TCO[i], K, depth, masks[i], rendered[j], windows[i], cfg, syms)
         results[i].timings["render"] = render_share
+    if cfg.check_agreement:
+        _check_agreement(results, {i: rendered[j] for j, i in enumerate(todo)}, windows, TCO, K, depth, masks,
+                         renderer, obj_ids, cfg)
+    for i in todo:
         results[i].seconds = sum(results[i].timings.values())
     return results  # type: ignore[return-value]
+
+
+def _check_agreement(results: list, rendered: dict[int, np.ndarray], windows: list, TCO: np.ndarray, K: np.ndarray,
+                     depth: np.ndarray, masks: np.ndarray, renderer: MeshRenderer, obj_ids: list[int],
+                     cfg: IcpConfig) -> None:
+    """Set each result's ``agreement`` and reject, in place, an accepted result whose depth agrees
+    less than its start's (the starts' renders are those ICP made; the results get one batched render)."""
+    t0 = time.perf_counter()
+    start = np.zeros(len(results))
+    for i, r in rendered.items():
+        x0, y0, x1, y1 = windows[i]
+        start[i] = _window_agreement(r[: y1 - y0, : x1 - x0], depth[y0:y1, x0:x1], masks[i, y0:y1, x0:x1],
+                                     cfg.agreement_tolerance)
+    moved = [i for i, r in enumerate(results) if r.accepted]
+    after = dict(zip(moved, depth_agreement(np.stack([results[i].TCO for i in moved]), K, depth, masks[moved], renderer,
+                                            [obj_ids[i] for i in moved], cfg.agreement_tolerance, cfg.window_margin)
+                     if moved else []))
+    for i, r in enumerate(results):
+        if i in after and after[i] < start[i]:
+            results[i] = replace(r, TCO=TCO[i].copy(), accepted=False, agreement=float(start[i]),
+                                 reason=f"ICP result agrees less with the depth than its start ({after[i]:.3f} < {start[i]:.3f})")
+        else:
+            r.agreement = float(after.get(i, start[i]))
+    if rendered:
+        share = (time.perf_counter() - t0) / len(rendered)
+        for i in rendered:
+            results[i].timings["agreement"] = share
+
+
+def _window_agreement(rendered: np.ndarray, measured: np.ndarray, in_mask: np.ndarray, tolerance: float) -> float:
+    """:func:`depth_agreement` of one window: rendered and measured depth [h,w] (m, 0 = none), mask [h,w]."""
+    r = np.asarray(rendered, dtype=np.float64)
+    m = np.asarray(measured, dtype=np.float64)
+    known = (m > 0) & np.isfinite(m)
+    drawn = r > 0
+    seen = drawn & (~known | (r <= m + tolerance))
+    agree = in_mask & drawn & (~known | (np.abs(r - m) <= tolerance))
+    return float(agree.sum() / max(int((in_mask | seen).sum()), 1))
 
 
 def depth_agreement(
@@ -322,14 +368,8 @@ def depth_agreement(
     rendered = renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
     for j, i in enumerate(todo):
         x0, y0, x1, y1 = windows[i]
-        r = np.asarray(rendered[j][: y1 - y0, : x1 - x0], dtype=np.float64)
-        m = np.asarray(depth[y0:y1, x0:x1], dtype=np.float64)
-        in_mask = masks[i, y0:y1, x0:x1]
-        known = (m > 0) & np.isfinite(m)
-        drawn = r > 0
-        seen = drawn & (~known | (r <= m + tolerance))
-        agree = in_mask & drawn & (~known | (np.abs(r - m) <= tolerance))
-        scores[i] = agree.sum() / max(int((in_mask | seen).sum()), 1)
+        scores[i] = _window_agreement(rendered[j][: y1 - y0, : x1 - x0], depth[y0:y1, x0:x1], masks[i, y0:y1, x0:x1],
+                                      tolerance)
     return scores
 
 

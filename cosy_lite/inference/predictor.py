@@ -637,7 +637,7 @@ class Predictor:
         if self.icp and depth is not None:
             TCO_before_icp = TCO
             with clock("icp"):
-                if hypotheses is not None and self.icp_config.verify_candidates:
+                if hypotheses is not None and self.icp_config.verify_candidates and self.icp_config.check_agreement:
                     TCO, icp_results = self._icp_hypotheses(hypotheses, K, depth, det, (H, W))
                 else:
                     TCO, icp_results = self._icp(TCO, K, depth, det, (H, W))
@@ -844,36 +844,14 @@ class Predictor:
 
     def _icp_hypotheses(self, hypotheses: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
                         size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
-        """ICP of every hypothesis ``[N,k,4,4]``; per detection, of the k hypotheses and their k ICP
-        results, the pose whose depth agrees best with the measured depth
-        (:func:`~cosy_lite.inference.icp.depth_agreement`) is kept: an ICP result that explains the
-        depth worse than its start is never kept over it (its IcpResult is then marked not accepted)."""
-        from cosy_lite.inference.icp import depth_agreement
-
+        """ICP of every hypothesis ``[N,k,4,4]``; per detection the result whose depth agrees best
+        with the measured depth (:attr:`IcpResult.agreement`, :func:`~cosy_lite.inference.icp.depth_agreement`)."""
         N, k = hypotheses.shape[:2]
-        flat = hypotheses.reshape(N * k, 4, 4).double()
         flat_det = det.select(torch.arange(N).repeat_interleave(k))
-        refined, results = self._icp(flat, K, depth, flat_det, size)
-        depth, masks = self._icp_inputs(depth, flat_det, size)
-        poses = torch.cat([refined, flat])  # [2Nk]: the ICP results, then their starts
-        scores = np.full(2 * N * k, -1.0)
-        ok = valid_poses(poses).nonzero().flatten().tolist()
-        if ok:
-            ids = flat_det.obj_ids.tolist() * 2
-            scores[ok] = depth_agreement(poses[ok].numpy(), K.numpy(), depth, np.concatenate([masks, masks])[ok],
-                                         self.renderer, [int(ids[i]) for i in ok], self.icp_config.agreement_tolerance,
-                                         self.icp_config.window_margin)
-        scores = scores.reshape(2, N, k)
-        use_icp = scores[0] >= scores[1]  # [N,k]: ties (e.g. a rejected ICP, which returns its start) keep ICP's result
-        best = np.maximum(scores[0], scores[1]).argmax(axis=1)  # [N]
-        chosen, out = [], []
-        for i, j in enumerate(best):
-            f = i * k + j
-            chosen.append(refined[f] if use_icp[i, j] else flat[f])
-            r = results[f]
-            out.append(r if use_icp[i, j] else replace(r, TCO=flat[f].numpy().copy(), accepted=False,
-                                                       reason="ICP result agrees less with the depth than its start"))
-        return orthonormalise(torch.stack(chosen)), out
+        refined, results = self._icp(hypotheses.reshape(N * k, 4, 4).double(), K, depth, flat_det, size)
+        agreement = np.array([r.agreement for r in results]).reshape(N, k)
+        best = torch.from_numpy(agreement.argmax(axis=1) + np.arange(N) * k)
+        return refined[best], [results[i] for i in best.tolist()]
 
     @staticmethod
     def _timings(clock: _Clock, t_start: float) -> dict[str, float]:
