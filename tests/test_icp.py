@@ -162,22 +162,33 @@ def test_rejects_without_data(renderer):
     assert not res.accepted and "in front of the camera" in res.reason
 
 
+LIMITS = IcpConfig(max_rotation_deg=15.0, max_translation=0.05, min_fitness=0.5, max_inlier_rmse=0.004,
+                   check_agreement=False)  # the first version's limits, without the agreement check
+
+
 @pytest.mark.parametrize(
     "offset, reason",
     [((0.2, 0.0, 0.0), "fitness"), ((0.0, 0.0, 0.2), "max_translation"), ((0.0, 0.05, 0.0), "")],
 )
 def test_far_start_never_accepts_a_wild_pose(renderer, offset, reason):
-    """20 cm to the side: no correspondences; 20 cm deeper: the depth pre-alignment would move it
-    back, beyond max_translation. 5 cm (beyond the 2 cm capture range): rejected or refined, never wild."""
+    """With the limits: 20 cm to the side: no correspondences; 20 cm deeper: the depth pre-alignment
+    would move it back, beyond max_translation. 5 cm (beyond the first stage's range): rejected or
+    refined, never wild. With the defaults (no limits, agreement check): never worse than the start,
+    and the two within reach of the pre-alignment and the 4 cm first stage are brought back."""
     depth, masks = _scene(renderer, [MUSTARD])
     start = GT[MUSTARD].copy()
     start[:3, 3] += offset
-    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD, LIMITS)
     print(offset, res.accepted, res.reason, f"fitness {res.fitness:.3f}", _errors(res.TCO, GT[MUSTARD]))
     if reason:
         assert not res.accepted and reason in res.reason and np.array_equal(res.TCO, start)
     if res.accepted:
         assert _errors(res.TCO, GT[MUSTARD])[0] < 5.0
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    print("defaults:", res.accepted, res.reason, _errors(res.TCO, GT[MUSTARD]))
+    assert _errors(res.TCO, GT[MUSTARD])[0] <= _errors(start, GT[MUSTARD])[0] + 1e-6
+    if offset[0] == 0.0:
+        assert res.accepted and _errors(res.TCO, GT[MUSTARD])[0] < 2.0  # measured 0.07-0.09 mm
 
 
 def test_rotation_limit(renderer):
@@ -246,7 +257,7 @@ def test_rejection_kinds_name_the_limit(renderer):
     depth, masks = _scene(renderer, [MUSTARD])
     start = GT[MUSTARD].copy()
     start[2, 3] += 0.2
-    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD)
+    res = refine_pose_icp(start, K, depth, masks[0], renderer, MUSTARD, LIMITS)
     assert icp_rejection_kind(res.reason) == "max_translation"
     assert icp_rejection_kind("too few measured depth points in the mask (3 < 50)") == "too few measured depth points in the mask"
     assert icp_rejection_kind("empty mask") == "empty mask"

@@ -220,12 +220,14 @@ def _box_error(R: np.ndarray, G: np.ndarray) -> np.ndarray:
 
 
 def test_icp_keeps_the_candidate_the_depth_confirms(scene):
-    """ICP of 3 template candidates per detection, the true rotation put last: the one kept by depth
-    agreement is the true pose, where ICP of the first candidate alone cannot turn it around."""
+    """ICP of 3 template candidates per detection, the true rotation put last, ICP limited to 15 deg
+    (here ICP without limits turns even the wrong candidates around): the one kept by depth agreement
+    is the true pose, where ICP of the first candidate alone cannot turn it around."""
     from cosy_lite.inference.icp import IcpConfig, refine_poses_icp
 
     p = _predictor(scene, None, 0, 1)
-    p.icp, p.icp_config = True, IcpConfig()
+    limited = IcpConfig(max_rotation_deg=15.0)
+    p.icp, p.icp_config = True, limited
     depth, det = _depth(scene), _detections(scene)
     candidates = _templates(scene).match(scene["masks"], scene["ids"], K, top_k=3).TCO[:, ::-1].copy()
     boxes = [0, 2, 3]  # the cone (detection 1) turns freely about its axis
@@ -235,7 +237,7 @@ def test_icp_keeps_the_candidate_the_depth_confirms(scene):
     TCO, results = p._icp_hypotheses(torch.from_numpy(candidates), torch.from_numpy(K), depth, det, (H, W))
     assert len(results) == 4 and TCO.shape == (4, 4, 4)
     assert _box_error(TCO[boxes, :3, :3].numpy(), G).max() < 0.5
-    first = refine_poses_icp(candidates[:, 0], K, depth, scene["masks"], scene["renderer"], scene["ids"])
+    first = refine_poses_icp(candidates[:, 0], K, depth, scene["masks"], scene["renderer"], scene["ids"], limited)
     assert (_box_error(np.stack([first[i].TCO[:3, :3] for i in boxes]), G) > 15).all()  # ICP alone: within 15 deg
 
 
