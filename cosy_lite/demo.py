@@ -51,10 +51,12 @@ class DemoConfig:
     data_root: Path = REPO / "data"
     runs: Path = REPO / "runs" / "demo"
     out: Path = REPO / "outputs"
-    # detector: its profile's 1200 steps take ~17.5 min on the 2-core machine (1.15 steps/s with 2 DDP
-    # processes; the budget is a cap); then the refiner, also on both cores (start="coarse": coarse
-    # and refiner side by side, one core each)
-    train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 18.0, "coarse": 11.0, "refiner": 11.0})
+    # detector: its profile's 1200 steps would take 17.5-21 min on the 2-core machine (0.95-1.15 steps/s
+    # with 2 DDP processes), so the budget, a cap, ends it first (1026 steps in 18 min: validation
+    # AP50 0.57); then the refiner, also on both cores (start="coarse": coarse and refiner side by side,
+    # one core each). 16 + 9.5 min keep make demo near its 45 minutes from a clean clone (setup ~4,
+    # generation 5-8, inference ~7.5, evaluation ~1)
+    train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 16.0, "coarse": 9.5, "refiner": 9.5})
     n_refiner_iters: int = 4
     start: str = "templates"  # infer.py --start: "templates" (no coarse network) or "coarse"
     n_candidates: int = 5  # infer.py --candidates (start="templates")
@@ -260,7 +262,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=Path, default=DemoConfig.runs, help="run folders of the three models")
     p.add_argument("--out", type=Path, default=DemoConfig.out, help="CSVs, scores, overlays, summary")
     p.add_argument("--minutes", type=float, nargs=3, metavar=("DET", "COARSE", "REF"), default=None,
-                   help="training budget per model (default 18 11 11)")
+                   help="training budget per model (default 16 9.5 9.5)")
     p.add_argument("--start", choices=["templates", "coarse"], default=DemoConfig.start,
                    help="start poses: silhouette templates (default; the coarse network is not trained) or the "
                         "trained coarse network (CosyPose)")
