@@ -216,6 +216,29 @@ def _cloud(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCloud:
 # ----------------------------------------------------------------------------- checks
 
 
+def _inputs(TCO: Any, K: Any, depth: Any, masks: Any, obj_ids: Sequence[int]) -> tuple:
+    """(TCO [N,4,4] float64, K [3,3] float64, depth [H,W], masks [N,H,W] bool, obj_ids list[int]), checked."""
+    TCO = np.asarray(TCO, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    depth = np.asarray(depth)
+    masks = np.asarray(masks).astype(bool, copy=False)
+    obj_ids = [int(i) for i in obj_ids]
+    _check_inputs(TCO, K, depth, masks, obj_ids)
+    return TCO, K, depth, masks, obj_ids
+
+
+def _render_windows(renderer: MeshRenderer, obj_ids: list[int], TCO: np.ndarray, K: np.ndarray,
+                    windows: Sequence, todo: list[int]) -> np.ndarray:
+    """``[len(todo),h,w]`` model depth of objects ``todo`` in their windows (x0, y0, x1, y1), one
+    batched render at the largest window's size (each window's own part starts at the corner)."""
+    h = max(windows[i][3] - windows[i][1] for i in todo)
+    w = max(windows[i][2] - windows[i][0] for i in todo)
+    K_crops = np.repeat(K[None], len(todo), axis=0)
+    K_crops[:, 0, 2] -= [windows[i][0] for i in todo]
+    K_crops[:, 1, 2] -= [windows[i][1] for i in todo]
+    return renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
+
+
 def _check_inputs(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, masks: np.ndarray, obj_ids: Sequence[int]) -> None:
     N = len(obj_ids)
     if TCO.shape != (N, 4, 4):
@@ -256,12 +279,7 @@ def refine_poses_icp(
     Raises ValueError for wrong shapes or a non-finite TCO / K (naming the argument and index).
     """
     cfg = IcpConfig() if cfg is None else cfg
-    TCO = np.asarray(TCO, dtype=np.float64)
-    K = np.asarray(K, dtype=np.float64)
-    depth = np.asarray(depth_measured)
-    masks = np.asarray(masks).astype(bool, copy=False)
-    obj_ids = [int(i) for i in obj_ids]
-    _check_inputs(TCO, K, depth, masks, obj_ids)
+    TCO, K, depth, masks, obj_ids = _inputs(TCO, K, depth_measured, masks, obj_ids)
     N = len(obj_ids)
     if symmetries is not None and len(symmetries) != N:
         raise ValueError(f"symmetries must hold one [S,4,4] array (or None) per object: {len(symmetries)} for {N} objects")
@@ -281,12 +299,7 @@ def refine_poses_icp(
     render_share = 0.0
     rendered = None
     if todo:
-        h = max(windows[i][3] - windows[i][1] for i in todo)
-        w = max(windows[i][2] - windows[i][0] for i in todo)
-        K_crops = np.repeat(K[None], len(todo), axis=0)
-        K_crops[:, 0, 2] -= [windows[i][0] for i in todo]
-        K_crops[:, 1, 2] -= [windows[i][1] for i in todo]
-        rendered = renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
+        rendered = _render_windows(renderer, obj_ids, TCO, K, windows, todo)
         render_share = (time.perf_counter() - t_start) / len(todo)
     for j, i in enumerate(todo):
         syms = None if symmetries is None or symmetries[i] is None else np.asarray(symmetries[i], dtype=np.float64)
@@ -353,12 +366,7 @@ def depth_agreement(
     with the mask standing in for the unknown GT. 0 for an empty mask or a pose behind the camera.
     Args as :func:`refine_poses_icp` (masks [N,H,W] bool); all windows are rendered in one call.
     """
-    TCO = np.asarray(TCO, dtype=np.float64)
-    K = np.asarray(K, dtype=np.float64)
-    depth = np.asarray(depth_measured)
-    masks = np.asarray(masks).astype(bool, copy=False)
-    obj_ids = [int(i) for i in obj_ids]
-    _check_inputs(TCO, K, depth, masks, obj_ids)
+    TCO, K, depth, masks, obj_ids = _inputs(TCO, K, depth_measured, masks, obj_ids)
     H, W = depth.shape
     scores = np.zeros(len(obj_ids))
     windows: dict[int, tuple[int, int, int, int]] = {}
@@ -371,12 +379,7 @@ def depth_agreement(
     if not windows:
         return scores
     todo = sorted(windows)
-    h = max(windows[i][3] - windows[i][1] for i in todo)
-    w = max(windows[i][2] - windows[i][0] for i in todo)
-    K_crops = np.repeat(K[None], len(todo), axis=0)
-    K_crops[:, 0, 2] -= [windows[i][0] for i in todo]
-    K_crops[:, 1, 2] -= [windows[i][1] for i in todo]
-    rendered = renderer.render([obj_ids[i] for i in todo], TCO[todo], K_crops, (h, w), depth_only=True).depth
+    rendered = _render_windows(renderer, obj_ids, TCO, K, windows, todo)
     for j, i in enumerate(todo):
         x0, y0, x1, y1 = windows[i]
         scores[i] = _window_agreement(rendered[j][: y1 - y0, : x1 - x0], depth[y0:y1, x0:x1], masks[i, y0:y1, x0:x1],
