@@ -173,3 +173,98 @@ def test_shifted_box_gives_the_known_ap(dataset):
     s = evaluate_detections(dataset, [rec], {(rec.scene_id, rec.im_id): det})
     assert [s.ap, s.ap50, s.ap75] == pytest.approx([(1.0 + 0.4) / 2, 1.0, 0.5])
     assert [s.mask_ap, s.mask_ap50] == pytest.approx([s.ap, 1.0])
+
+
+# ----------------------------------------------------------------------------- BOP 2D tasks (eval_bop22_coco.py)
+
+
+def _gt_boxes(dataset, rec) -> dict[int, list[float]]:
+    """obj_id -> its amodal GT box (x, y, w, h) in ``rec`` (one instance per object there)."""
+    gt, _ = coco_ground_truth(dataset, [rec], "amodal")
+    return {a["category_id"]: a["bbox"] for a in gt["annotations"]}
+
+
+def _entry(rec, obj_id: int, box, score: float) -> dict:
+    return {"scene_id": rec.scene_id, "image_id": rec.im_id, "category_id": obj_id, "score": score,
+            "bbox": [float(v) for v in box], "time": 0.25}
+
+
+def _scores(dataset, rec, entries, tmp_path, name="x") -> dict:
+    from cosy_lite.eval.detection import bop22_coco_scores
+
+    path = tmp_path / f"{name}_tiny-test.json"
+    path.write_text(json.dumps(entries))
+    return bop22_coco_scores(dataset, [rec], path, "bbox")
+
+
+def test_2d_detection_ap_by_hand(dataset, tmp_path):
+    """Image 0 has obj 1 and obj 2 once each; true positives are their GT boxes (IoU 1), false
+    positives a 20 px box in a corner (IoU 0). AP is the mean over the two objects of COCO's
+    101-point interpolated precision, the same at every IoU threshold here."""
+    rec = dataset.image(fx.SPLIT, fx.SCENE_ID, 0)
+    box = _gt_boxes(dataset, rec)
+    assert sorted(box) == [1, 2]
+    tp = [_entry(rec, 1, box[1], 0.5), _entry(rec, 2, box[2], 0.5)]
+    fp = _entry(rec, 1, [0, 0, 20, 20], 0.9)
+    s = _scores(dataset, rec, tp, tmp_path)
+    assert (s["AP"], s["AP50"], s["AR100"], s["average_time_per_image"]) == pytest.approx((1.0, 1.0, 1.0, 0.25))
+    # a false positive of obj 1 scored above its true positive: precision 1/2 at recall 1 -> (0.5 + 1) / 2
+    assert _scores(dataset, rec, [fp] + tp, tmp_path)["AP"] == pytest.approx(0.75)
+    # ... scored below: it comes after the recall is complete and costs nothing
+    assert _scores(dataset, rec, tp + [dict(fp, score=0.1)], tmp_path)["AP"] == pytest.approx(1.0)
+    # a tie keeps the file's order (pycocotools' stable sort of what the toolkit gives it)
+    assert _scores(dataset, rec, [dict(fp, score=0.5)] + tp, tmp_path)["AP"] == pytest.approx(0.75)
+    assert _scores(dataset, rec, tp + [dict(fp, score=0.5)], tmp_path)["AP"] == pytest.approx(1.0)
+    # only the 100 best-scored detections of an image count: the true positive of obj 1 ranked 100th
+    # gives precision 1/100 at recall 1; ranked 101st it is not seen
+    fps = [dict(fp, score=0.9 - 1e-4 * k) for k in range(100)]
+    assert _scores(dataset, rec, fps[:99] + tp, tmp_path)["AP"] == pytest.approx((0.01 + 1.0) / 2)
+    assert _scores(dataset, rec, fps + tp, tmp_path)["AP"] == pytest.approx((0.0 + 1.0) / 2)
+    # a missed object: obj 2 not detected -> its AP 0
+    assert _scores(dataset, rec, tp[:1], tmp_path)["AP"] == pytest.approx(0.5)
+    # entries of other images are not scored; no entry left: -1, as the toolkit
+    other = dict(tp[0], image_id=rec.im_id + 100)
+    s = _scores(dataset, rec, [other], tmp_path)
+    assert s["AP"] == -1.0 and s["average_time_per_image"] == -1.0
+
+
+def test_2d_detection_counts_ground_truth_under_10_percent_visible(tmp_path):
+    """The toolkit's GT marks instances under 10 % visible 'ignore', but pycocotools replaces that flag
+    by 'iscrowd' (0): a missed, barely visible instance still costs recall, as in the toolkit."""
+    root = fx.write_tiny_bop(tmp_path / "bop")
+    path = root / fx.SPLIT / f"{fx.SCENE_ID:06d}" / "scene_gt_info.json"
+    info = json.loads(path.read_text())
+    info["0"][1]["visib_fract"] = 0.05  # obj 2 of image 0
+    path.write_text(json.dumps(info))
+    ds = BopDataset(root)
+    rec = ds.image(fx.SPLIT, fx.SCENE_ID, 0)
+    gt, _ = coco_ground_truth(ds, [rec], "amodal")
+    assert [a["ignore"] for a in gt["annotations"]] == [0, 1]
+    box = _gt_boxes(ds, rec)
+    assert _scores(ds, rec, [_entry(rec, 1, box[1], 0.5)], tmp_path)["AP"] == pytest.approx(0.5)
+
+
+def test_cosy_lite_eval_2d_tasks_write_the_toolkits_files(dataset, tmp_path, capsys):
+    from cosy_lite.cli import main
+    from cosy_lite.eval.detection import COCO_KEYS
+
+    path = tmp_path / "oracle_tiny-test.json"
+    write_detections_json(path, _oracle(dataset))
+    for task, name in (("2d-detection", "scores_bop22_coco_bbox"), ("2d-segmentation", "scores_bop22_coco_segm")):
+        assert main(["eval", "--dataset", str(dataset.root), "--results", str(path), "--task", task,
+                     "--out", str(tmp_path / "ev")]) == 0
+        scores = json.loads((tmp_path / "ev" / f"{name}.json").read_text())
+        assert list(scores) == [*COCO_KEYS, "average_time_per_image"]
+        assert scores["AP"] == pytest.approx(1.0) and scores["AR100"] == pytest.approx(1.0)
+    assert main(["eval", "--dataset", str(dataset.root), "--results", str(path), "--task", "2d-detection",
+                 "--bbox-type", "modal", "--out", str(tmp_path / "ev")]) == 0
+    assert json.loads((tmp_path / "ev" / "scores_bop22_coco_bbox_modal.json").read_text())["AP"] == pytest.approx(1.0)
+    capsys.readouterr()
+    assert main(["eval", "--dataset", str(dataset.root), "--results", str(tmp_path / "none.json"),
+                 "--task", "2d-detection"]) == 1
+    assert "results file not found" in capsys.readouterr().out
+    bad = tmp_path / "bad_tiny-test.json"
+    bad.write_text(json.dumps([{"scene_id": 0, "image_id": 0, "category_id": 1, "score": "high", "bbox": [0, 0, 1, 1]}]))
+    assert main(["eval", "--dataset", str(dataset.root), "--results", str(bad), "--task", "2d-detection"]) != 0
+    text = "".join(capsys.readouterr())
+    assert f"{bad}" in text and "[0].score" in text and "Traceback" not in text

@@ -170,3 +170,31 @@ def test_bad_arguments(setup, tmp_path, capsys):
     assert cli(_args(setup, tmp_path, *ck, "--depth", str(small))) == 2
     err = capsys.readouterr().err
     assert str(small) in err and "120x100" in err
+
+
+def test_infer_writes_the_detectors_detections_for_the_2d_tasks(setup, tmp_path):
+    """infer.py with the detector also writes every detection as BOP22 JSON beside the CSV (before
+    the per-object selection), which cosy-lite eval --task 2d-detection / 2d-segmentation scores."""
+    import infer
+    from cosy_lite.bop.detections import read_bop22_entries
+    from cosy_lite.eval.detection import COCO_KEYS
+
+    out = tmp_path / "res"
+    assert infer.main(["--dataset", str(setup["root"]), "--coarse", str(setup["coarse"]), "--detector",
+                       str(setup["detector"]), "--n-refiner-iters", "0", "--limit-images", "2", "--no-progress",
+                       "--threads", "1", "--out", str(out)]) == 0
+    csv = next(out.glob("*.csv"))
+    entries = read_bop22_entries(csv.with_suffix(".json"))
+    rows = read_results_csv(csv)
+    assert len({(e["scene_id"], e["image_id"]) for e in entries}) == 2  # both images
+    assert len(entries) == 10 >= len(rows) > 0  # 5 per image (box_detections_per_img): all, not the selection
+    assert all(e["segmentation"] is not None and e["time"] > 0 for e in entries)
+    for task, name in (("2d-detection", "bbox"), ("2d-segmentation", "segm")):
+        assert cli(["eval", "--dataset", str(setup["root"]), "--results", str(csv.with_suffix(".json")),
+                    "--task", task, "--out", str(tmp_path / "ev")]) == 0
+        scores = json.loads((tmp_path / "ev" / f"scores_bop22_coco_{name}.json").read_text())
+        assert list(scores) == [*COCO_KEYS, "average_time_per_image"] and scores["average_time_per_image"] > 0
+    # oracle detections are not the detector's: no JSON
+    assert infer.main(["--dataset", str(setup["root"]), "--coarse", str(setup["coarse"]), "--detections", "oracle",
+                       "--n-refiner-iters", "0", "--limit-images", "1", "--no-progress", "--out", str(tmp_path / "o")]) == 0
+    assert not list((tmp_path / "o").glob("*.json"))

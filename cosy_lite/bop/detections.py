@@ -99,10 +99,11 @@ def rle_to_mask(rle: dict[str, Any]) -> np.ndarray:
     """Compressed (``counts`` str) or uncompressed (``counts`` list) COCO RLE -> ``[H,W]`` bool."""
     from pycocotools import mask as mask_util
 
-    return mask_util.decode(_compressed(rle)).astype(bool)
+    return mask_util.decode(compressed_rle(rle)).astype(bool)
 
 
-def _compressed(rle: dict[str, Any]) -> dict[str, Any]:
+def compressed_rle(rle: dict[str, Any]) -> dict[str, Any]:
+    """A COCO RLE as pycocotools takes it: run lengths (a list) compressed, a string's counts as bytes."""
     from pycocotools import mask as mask_util
 
     h, w = rle["size"]
@@ -145,7 +146,11 @@ def write_detections_json(path: str | Path, detections: Mapping[ImageKey, Detect
 
     BOP expects the name ``METHOD_DATASET-SPLIT.json`` (e.g. ``cosylite_ycbv-test.json``).
     """
-    entries = detections_to_bop22(detections)
+    write_bop22_entries(path, detections_to_bop22(detections))
+
+
+def write_bop22_entries(path: str | Path, entries: list[dict[str, Any]]) -> None:
+    """Write BOP22 entries (:func:`detections_to_bop22`) as a results file, one per line, atomically."""
     io.atomic_write_text(path, "[\n" + ",\n".join(json.dumps(e) for e in entries) + "\n]\n")
 
 
@@ -225,7 +230,7 @@ def _image_detections(path: Path, entries: list[tuple[int, _Entry]], with_masks:
     entries = sorted(entries, key=lambda ie: -ie[1].score)
     boxes = []
     for _, e in entries:
-        boxes.append(e.bbox if e.bbox is not None else mask_util.toBbox(_compressed(e.segmentation)).tolist())
+        boxes.append(e.bbox if e.bbox is not None else mask_util.toBbox(compressed_rle(e.segmentation)).tolist())
     masks = None
     if with_masks:
         arrays = []
@@ -262,15 +267,28 @@ def read_detections_json(path: str | Path, valid_obj_ids: Iterable[int] | None =
         BopFormatError naming the entry and key (e.g. ``[12].score``) for malformed content.
     """
     path = Path(path)
+    per_image: dict[ImageKey, list[tuple[int, _Entry]]] = {}
+    for i, e in enumerate(_read_entries(path, valid_obj_ids)):
+        per_image.setdefault((e.scene_id, e.im_id), []).append((i, e))
+    return {key: _image_detections(path, entries, with_masks) for key, entries in sorted(per_image.items())}
+
+
+def _read_entries(path: Path, valid_obj_ids: Iterable[int] | None) -> list[_Entry]:
     data = io.load_json(path)
     if not isinstance(data, list):
         raise BopFormatError(path, "", f"expected a JSON list of detections, got {type(data).__name__}")
     valid = None if valid_obj_ids is None else {int(i) for i in valid_obj_ids}
-    per_image: dict[ImageKey, list[tuple[int, _Entry]]] = {}
-    for i, d in enumerate(data):
-        e = _parse_entry(path, i, d, valid)
-        per_image.setdefault((e.scene_id, e.im_id), []).append((i, e))
-    return {key: _image_detections(path, entries, with_masks) for key, entries in sorted(per_image.items())}
+    return [_parse_entry(path, i, d, valid) for i, d in enumerate(data)]
+
+
+def read_bop22_entries(path: str | Path, valid_obj_ids: Iterable[int] | None = None) -> list[dict[str, Any]]:
+    """The entries of a BOP22 detection file, checked as :func:`read_detections_json` checks them
+    (errors name the entry and key), in file order, masks left as RLE (nothing decoded): dicts with
+    ``scene_id, image_id, category_id, score``, ``bbox`` and ``segmentation`` (None where absent)
+    and ``time`` (-1 where absent)."""
+    return [{"scene_id": e.scene_id, "image_id": e.im_id, "category_id": e.obj_id, "score": e.score,
+             "bbox": e.bbox, "segmentation": e.segmentation, "time": e.time}
+            for e in _read_entries(Path(path), valid_obj_ids)]
 
 
 # ----------------------------------------------------------------------------- oracle

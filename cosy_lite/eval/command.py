@@ -1,5 +1,7 @@
 """``cosy-lite eval``: validate a BOP19 results CSV, score it (VSD, MSSD, MSPD, AR), write JSON + PNG;
-``--task 6d-detection``: the BOP 2024/2025 mAP instead (:mod:`cosy_lite.eval.pose_detection`)."""
+``--task 6d-detection``: the BOP 2024/2025 mAP instead (:mod:`cosy_lite.eval.pose_detection`);
+``--task 2d-detection | 2d-segmentation``: COCO AP of a BOP22 detections JSON, as the toolkit's
+``eval_bop22_coco.py`` (:func:`cosy_lite.eval.detection.bop22_coco_scores`)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ from pathlib import Path
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", required=True, metavar="DIR",
                    help="BOP dataset folder, or a name under $COSY_LITE_DATA (default ./data)")
-    p.add_argument("--results", required=True, type=Path, metavar="FILE.csv", help="results METHOD_DATASET-SPLIT.csv")
+    p.add_argument("--results", required=True, type=Path, metavar="FILE.csv",
+                   help="results METHOD_DATASET-SPLIT.csv (the 2D tasks: a BOP22 detections METHOD_DATASET-SPLIT.json)")
     p.add_argument("--split", default=None, help="split folder (default: the dataset's BOP19 test split)")
     p.add_argument("--name", default=None, help="dataset name (default: the folder name)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
@@ -26,9 +29,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--visib-gt-min", type=float, default=-1.0,
                    help="GT instances with visib_fract >= this are targets; -1 (default, the toolkit's BOP19 "
                         "setting): the inst_count most visible instances of each target")
-    p.add_argument("--task", default="6d-localization", choices=["6d-localization", "6d-detection"],
+    p.add_argument("--task", default="6d-localization",
+                   choices=["6d-localization", "6d-detection", "2d-detection", "2d-segmentation"],
                    help="6d-localization: BOP19 AR (VSD, MSSD, MSPD) over test_targets_bop19.json; 6d-detection: "
-                        "BOP 2024/2025 mAP (MSSD, MSPD; bop24_mAP, bop25_mAP) over test_targets_bop24.json")
+                        "BOP 2024/2025 mAP (MSSD, MSPD; bop24_mAP, bop25_mAP) over test_targets_bop24.json; "
+                        "2d-detection / 2d-segmentation: COCO box / mask AP of a BOP22 detections JSON over the "
+                        "images of --targets (scores_bop22_coco_bbox.json / _segm.json, the toolkit's keys)")
+    p.add_argument("--targets", default=None, metavar="FILE",
+                   help="2D tasks: the targets file in the dataset folder whose images are scored (default "
+                        "test_targets_bop19.json, as the toolkit; test_targets_bop24.json for BOP 2024/2025)")
+    p.add_argument("--bbox-type", default="amodal", choices=["amodal", "modal"],
+                   help="2d-detection: GT boxes of the whole object (amodal, the toolkit's default) or of its "
+                        "visible part (modal: scores_bop22_coco_bbox_modal.json)")
     p.add_argument("--auc", action="store_true",
                    help="also compute ADD and ADI and report the YCB-V AUC of ADD(-S) and of ADI (PoseCNN's "
                         "metric, not part of BOP19; about 40 %% more time)")
@@ -122,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     task = getattr(args, "task", "6d-localization")  # (namespaces built in code before the option existed)
     root = resolve_dataset(args.dataset)
+    if task.startswith("2d-"):
+        return _run_2d(args, root, task)
     problems = check_results(args.results, root, args.name, args.split)
     if root.is_dir():  # (a missing folder is reported by check_results)
         split = eval_split(dataset_name_of(root, args.name), args.split)
@@ -158,4 +172,39 @@ def _run_6d_detection(args: argparse.Namespace, root: Path) -> int:
     out = args.out or args.results.with_name(args.results.stem + "_eval")
     atomic_write_text(out / "scores_bop24.json", json.dumps(result.to_dict(), indent=1) + "\n")
     print(f"wrote {out / 'scores_bop24.json'}")
+    return 0
+
+
+def _run_2d(args: argparse.Namespace, root: Path, task: str) -> int:
+    """Score a BOP22 detections JSON for a BOP 2D task and write ``scores_bop22_coco_{bbox|segm}.json``."""
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.io import atomic_write_text, load_image_targets
+    from cosy_lite.bop.params import dataset_name_of
+    from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, report
+    from cosy_lite.eval.detection import ANN_TYPES, COCO_KEYS, bop22_coco_scores
+    from cosy_lite.eval.evaluator import eval_split
+
+    if not root.is_dir():
+        return report([Problem(str(root), "", "dataset folder not found")], f"{args.results} on {root}")
+    split = eval_split(dataset_name_of(root, args.name), args.split)
+    targets = root / (args.targets or TARGETS_FILE)
+    problems = check_dataset(root, args.name, splits=[split])
+    if not targets.is_file():
+        problems.append(Problem(str(targets), "", f"file not found: the {task} evaluation scores the images it lists"))
+    if not args.results.is_file():
+        problems.append(Problem(str(args.results), "", "results file not found"))
+    if any(p.severity == "error" for p in problems):
+        return report(problems, f"{args.results} on {root}")
+    dataset = BopDataset(root) if args.name is None else BopDataset(root, args.name)
+    keys = sorted({(t.scene_id, t.im_id) for t in load_image_targets(targets)})
+    records = [dataset.image(split, scene_id, im_id) for scene_id, im_id in keys]
+    ann_type = ANN_TYPES[task]
+    scores = bop22_coco_scores(dataset, records, args.results, ann_type, args.bbox_type)
+    print(f"{task} ({ann_type}, {args.bbox_type if ann_type == 'bbox' else 'visible masks'}) of {args.results} "
+          f"on {len(records)} images of {targets.name}:")
+    print("  " + "  ".join(f"{k} {scores[k]:.3f}" for k in COCO_KEYS[:3] + ("AR100",)))
+    out = args.out or args.results.with_name(args.results.stem + "_eval")
+    name = f"scores_bop22_coco_{ann_type}" + ("_modal" if ann_type == "bbox" and args.bbox_type == "modal" else "")
+    atomic_write_text(out / f"{name}.json", json.dumps(scores, indent=1) + "\n")
+    print(f"wrote {out / name}.json")
     return 0

@@ -21,10 +21,16 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from cosy_lite.bop import io
-from cosy_lite.bop.detections import Detections, ImageKey, detections_to_bop22, mask_to_rle, read_detections_json
+from cosy_lite.bop.detections import (Detections, ImageKey, compressed_rle, detections_to_bop22, mask_to_rle,
+                                      read_bop22_entries, read_detections_json)
 
 VISIB_IGNORE = 0.1  # toolkit: GT less visible than this gets the ignore flag
 BBOX_TYPES = ("modal", "amodal")
+# the BOP 2D tasks: cosy-lite eval --task -> COCO annotation type (the toolkit's --ann_type)
+ANN_TYPES = {"2d-detection": "bbox", "2d-segmentation": "segm"}
+# keys of the toolkit's scores_bop22_coco_*.json, in COCOeval.stats order
+COCO_KEYS = ("AP", "AP50", "AP75", "AP_small", "AP_medium", "AP_large", "AR1", "AR10", "AR100", "AR_small",
+             "AR_medium", "AR_large")
 
 
 @dataclass
@@ -144,3 +150,38 @@ def evaluate_detections_file(dataset, records: Iterable, path: str | Path, bbox_
 def _all_have_segmentation(path: str | Path) -> bool:
     data = io.load_json(path)
     return isinstance(data, list) and bool(data) and all(isinstance(d, dict) and d.get("segmentation") for d in data)
+
+
+def bop22_coco_scores(dataset, records: Iterable, path: str | Path, ann_type: str,
+                      bbox_type: str = "amodal") -> dict[str, float]:
+    """The BOP 2D detection (``ann_type="bbox"``) or segmentation (``"segm"``) scores of a BOP22
+    results JSON, as the toolkit's ``eval_bop22_coco.py`` computes them: only the images of
+    ``records`` (the targets' images) and the entries on them that have a box (bbox) or a mask
+    (segm); COCO AP with pycocotools (at most 100 detections per image, the highest scores); the
+    ground truth of :func:`coco_ground_truth`. Returns :data:`COCO_KEYS` (-1 where undefined, and
+    all -1 when no entry is left, as the toolkit) and ``average_time_per_image`` (the mean of the
+    images' ``time``, -1 when an entry has none or an image's entries disagree).
+    """
+    if ann_type not in ("bbox", "segm"):
+        raise ValueError(f"ann_type must be 'bbox' or 'segm', got {ann_type!r}")
+    records = list(records)
+    gt, index = coco_ground_truth(dataset, records, bbox_type)
+    entries = [e for e in read_bop22_entries(path, dataset.obj_ids) if (e["scene_id"], e["image_id"]) in index]
+    times: dict[ImageKey, set[float]] = {}
+    for e in entries:
+        times.setdefault((e["scene_id"], e["image_id"]), set()).add(e["time"])
+    consistent = all(len(t) == 1 and min(t) >= 0 for t in times.values())
+    avg_time = float(np.mean([min(t) for t in times.values()])) if times and consistent else -1.0
+    results = []
+    for e in entries:
+        if e["bbox" if ann_type == "bbox" else "segmentation"] is None:
+            continue
+        r = {"image_id": index[(e["scene_id"], e["image_id"])], "category_id": e["category_id"], "score": e["score"]}
+        if ann_type == "bbox":
+            r["bbox"] = e["bbox"]
+        else:
+            r["segmentation"] = compressed_rle(e["segmentation"])
+        results.append(r)
+    stats = _coco_eval(gt, results, ann_type) if results and gt["annotations"] else np.full(len(COCO_KEYS), -1.0)
+    return {**{k: float(v) for k, v in zip(COCO_KEYS, stats)}, "average_time_per_image": avg_time}
+

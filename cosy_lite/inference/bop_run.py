@@ -10,6 +10,9 @@ object its ``inst_count`` best detections (:func:`~cosy_lite.inference.vivo.sele
 from detection to the last pose (file reading excluded), plus the file's own detection time for
 a detections JSON (BOP: detection time counts); oracle detections cost nothing. Invalid poses
 (NaN, not a rotation, behind the camera) are never written: they are counted and reported.
+When the predictor's detector runs, all its detections (before the per-object selection) are also
+written as BOP22 ``METHOD_DATASET-SPLIT.json`` beside the CSV: the input of the BOP 2D tasks'
+evaluation (``cosy-lite eval --task 2d-detection | 2d-segmentation``).
 """
 
 from __future__ import annotations
@@ -24,8 +27,8 @@ import numpy as np
 import torch
 
 from cosy_lite.bop.dataset import BopDataset, ImageRecord
-from cosy_lite.bop.detections import (MIN_BOX_SIZE_PX, Detections, degenerate_boxes, oracle_detections,
-                                      read_detections_json)
+from cosy_lite.bop.detections import (MIN_BOX_SIZE_PX, Detections, degenerate_boxes, detections_to_bop22,
+                                      oracle_detections, read_detections_json, write_bop22_entries)
 from cosy_lite.bop.results import PoseEstimate, results_filename, write_results_csv
 from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
 from cosy_lite.errors import BopFormatError
@@ -109,6 +112,7 @@ class RunSummary:
     vis_paths: list[Path] = field(default_factory=list)
     problems: list[Problem] = field(default_factory=list)
     csv_before_icp: Path | None = None  # the same run's poses before ICP (method_before_icp)
+    detections_json: Path | None = None  # the detector's detections (BOP22), when it ran
 
     @property
     def ok(self) -> bool:
@@ -134,6 +138,8 @@ class RunSummary:
         out.append(f"results: {self.csv_path} ({verdict})")
         if self.csv_before_icp is not None:
             out.append(f"results before ICP: {self.csv_before_icp}")
+        if self.detections_json is not None:
+            out.append(f"detections (BOP22, every one; cosy-lite eval --task 2d-detection): {self.detections_json}")
         return out
 
 
@@ -233,6 +239,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     summary = RunSummary(csv_path, len(keys), 0, 0, 0, 0.0, timings=dict.fromkeys(TIMING_KEYS, 0.0),
                          csv_before_icp=csv_before)
     t_run = time.perf_counter()
+    detector_entries: list[dict] = []
     bar = tqdm(keys, desc=f"infer {dataset.name}/{split}", unit="img", disable=None if progress else True)
     for k, (scene_id, im_id) in enumerate(bar):
         rec = dataset.image(split_folder, scene_id, im_id)
@@ -252,6 +259,8 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         det = given if given is not None else predictor.detect(rgb)
         bad = degenerate_boxes(det)
         summary.n_degenerate += int(bad.sum())
+        if given is None:  # the detector's: all of them, for the BOP 2D tasks
+            detector_entries += detections_to_bop22({(scene_id, im_id): det.select(~bad)})
         det = choose[(scene_id, im_id)](det.select(~bad))
         est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
         t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
@@ -281,6 +290,9 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     bar.close()
     out_dir.mkdir(parents=True, exist_ok=True)
     write_results_csv(csv_path, estimates)
+    if source is None:
+        summary.detections_json = csv_path.with_suffix(".json")
+        write_bop22_entries(summary.detections_json, detector_entries)
     summary.n_estimates = len(estimates)
     summary.seconds = time.perf_counter() - t_run
     summary.problems = check_results(csv_path, dataset.root, dataset.name, split)
