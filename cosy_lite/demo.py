@@ -54,8 +54,8 @@ class DemoConfig:
     # detector: its profile's 1200 steps would take 17.5-21 min on the 2-core machine (0.95-1.15 steps/s
     # with 2 DDP processes), so the budget, a cap, ends it first (1026 steps in 18 min: validation
     # AP50 0.57); then the refiner, also on both cores (start="coarse": coarse and refiner side by side,
-    # one core each). 16 + 9.5 min keep make demo near its 45 minutes from a clean clone (setup ~4,
-    # generation 5-8, inference ~7.5, evaluation ~1)
+    # one core each). 16 + 9.5 min keep make demo within its 45 minutes from a clean clone (measured
+    # 42 min: setup + generation ~8, detector 16.4, refiner 10.4, inference 6.9, evaluation 0.6)
     train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 16.0, "coarse": 9.5, "refiner": 9.5})
     n_refiner_iters: int = 4
     start: str = "templates"  # infer.py --start: "templates" (no coarse network) or "coarse"

@@ -20,9 +20,9 @@ MIN_PEAK = 0.05  # ... if the peak is at least this (else it stays empty)
 def binary_masks(probabilities: np.ndarray) -> np.ndarray:
     """``[N,H,W]`` bool masks of ``probabilities [N,H,W]`` (float in [0, 1])."""
     probabilities = np.asarray(probabilities)
-    masks = probabilities > MASK_THRESHOLD
-    if masks.ndim != 3:
+    if probabilities.ndim != 3:
         raise ValueError(f"mask probabilities must be [N,H,W], got shape {probabilities.shape}")
+    masks = probabilities > MASK_THRESHOLD
     for i in np.flatnonzero(~masks.any(axis=(1, 2))):
         peak = float(probabilities[i].max()) if probabilities[i].size else 0.0
         if peak >= MIN_PEAK:
