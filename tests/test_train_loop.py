@@ -15,24 +15,60 @@ import torch
 from cosy_lite.train.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from cosy_lite.train.loop import LoopConfig, train
 from cosy_lite.train.sampler import StepBatchSampler
-from cosy_lite.train.schedule import OptimConfig, lr_factor
+from cosy_lite.train.schedule import OptimConfig, budget_factor, lr_factor
 from toy_task import ToyTask
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run(out: Path, steps: int, resume: bool = False, batch: int = 8, noise: float = 0.01, **loop_kw):
+def _run(out: Path, steps: int, resume: bool = False, batch: int = 8, noise: float = 0.01, schedule: str = "step",
+         task: ToyTask | None = None, **loop_kw):
     loop = LoopConfig(steps=steps, batch_size=batch, num_workers=0, log_every=5, val_every=10,
                       checkpoint_every=5, device="cpu", **loop_kw)
-    optim = OptimConfig(lr=3e-2, warmup_steps=5)
+    optim = OptimConfig(lr=3e-2, warmup_steps=5, schedule=schedule, cosine_floor=0.1)
     cfg = {"loop": dataclasses.asdict(loop), "optim": dataclasses.asdict(optim)}
-    return train(ToyTask(noise=noise), loop, optim, out, config=cfg, resume=resume, progress=False)
+    return train(task or ToyTask(noise=noise), loop, optim, out, config=cfg, resume=resume, progress=False)
+
+
+class _InterruptedToyTask(ToyTask):
+    """The toy task killed when it reaches step ``at`` (after the checkpoint of that step)."""
+
+    def __init__(self, at: int):
+        super().__init__(noise=0.01)
+        self.at = at
+
+    def compute_losses(self, model, batch, step, device):
+        if step == self.at:
+            raise KeyboardInterrupt
+        return super().compute_losses(model, batch, step, device)
 
 
 def test_lr_schedule_warmup_then_step_decay():
     cfg = OptimConfig(lr=1.0, warmup_steps=4, decay_steps=[10, 20], decay_factor=0.1)
     assert [lr_factor(s, cfg) for s in (0, 1, 3, 9)] == [0.25, 0.5, 1.0, 1.0]
     assert lr_factor(10, cfg) == pytest.approx(0.1) and lr_factor(25, cfg) == pytest.approx(0.01)
+
+
+def test_cosine_schedule_over_the_budget():
+    cfg = OptimConfig(schedule="cosine", cosine_floor=0.1)
+    assert [budget_factor(f, cfg) for f in (-1.0, 0.0, 0.5, 1.0, 2.0)] == pytest.approx([1.0, 1.0, 0.55, 0.1, 0.1])
+    assert budget_factor(0.5, OptimConfig()) == 1.0  # "step": no budget factor
+
+
+def test_cosine_run_ends_at_the_floor_and_resumes_exactly(tmp_path):
+    _run(tmp_path / "a", steps=20, schedule="cosine")
+    lrs = [json.loads(x)["lr"] for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()
+           if json.loads(x)["type"] == "train"]
+    # warm-up to step 5, then the cosine of (step + 1) / 20: the rate logged after step 20 is the floor
+    assert lrs[0] == pytest.approx(3e-2 * budget_factor(5 / 20, OptimConfig(schedule="cosine", cosine_floor=0.1)))
+    assert lrs[-1] == pytest.approx(3e-3) and lrs == sorted(lrs, reverse=True)
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path / "b", steps=20, schedule="cosine", task=_InterruptedToyTask(at=10))
+    _run(tmp_path / "b", steps=20, schedule="cosine", resume=True)
+    a = load_checkpoint(tmp_path / "a" / "checkpoint.pt").model
+    b = load_checkpoint(tmp_path / "b" / "checkpoint.pt").model
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
 
 
 def test_sampler_is_a_function_of_step_and_shards_ranks():
@@ -82,6 +118,14 @@ def test_resume_refuses_a_different_config(tmp_path):
 def test_time_budget_stops_with_a_checkpoint(tmp_path):
     s = _run(tmp_path, steps=10_000, max_minutes=1e-4)
     assert s.steps_done < 10_000 and load_checkpoint(tmp_path / "checkpoint.pt").step == s.steps_done
+
+
+def test_time_budget_counts_the_whole_run(tmp_path, capsys):
+    first = _run(tmp_path, steps=10_000, max_minutes=1e-4)
+    again = _run(tmp_path, steps=10_000, max_minutes=1e-4, resume=True)  # an interrupted run resumed
+    assert again.steps_done == first.steps_done and "nothing to do" in capsys.readouterr().out
+    more = _run(tmp_path, steps=10_000, max_minutes=1e-2, resume=True)  # a larger budget trains on
+    assert more.steps_done > first.steps_done
 
 
 def test_bad_checkpoints_name_the_file_and_problem(tmp_path):

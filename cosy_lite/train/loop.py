@@ -35,7 +35,7 @@ from cosy_lite.train.checkpoint import (Checkpoint, CheckpointError, load_checkp
                                         save_checkpoint)
 from cosy_lite.train.distributed import DistInfo, all_reduce_mean, barrier, init_distributed, shutdown_distributed
 from cosy_lite.train.sampler import StepBatchSampler
-from cosy_lite.train.schedule import OptimConfig, build_optimizer
+from cosy_lite.train.schedule import SCHEDULES, OptimConfig, budget_factor, build_optimizer
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "log.jsonl"
@@ -46,7 +46,8 @@ RESUMABLE_CHANGES = ("loop.steps", "loop.max_minutes", "loop.val_every", "loop.l
 
 @dataclass
 class LoopConfig:
-    """How long and how to train (per-process batch size; ``max_minutes`` = 0: no time limit)."""
+    """How long and how to train (per-process batch size; ``max_minutes``: training minutes of the whole
+    run, resumed parts included; 0 = no time limit)."""
 
     steps: int = 2000
     batch_size: int = 16
@@ -143,6 +144,9 @@ def check_train_config(loop: LoopConfig, optim: OptimConfig, where: str | Path =
          optim.decay_factor)
     need(math.isfinite(optim.clip_grad_norm) and optim.clip_grad_norm >= 0, "optim.clip_grad_norm",
          "a finite norm >= 0 (0: no clipping)", optim.clip_grad_norm)
+    need(optim.schedule in SCHEDULES, "optim.schedule", f"one of {SCHEDULES}", optim.schedule)
+    need(math.isfinite(optim.cosine_floor) and 0 <= optim.cosine_floor <= 1, "optim.cosine_floor",
+         "a factor in [0, 1]", optim.cosine_floor)
 
 
 def read_log(log_path: Path) -> list[dict[str, Any]]:
@@ -309,6 +313,10 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     last_val: dict[str, float] = {}
     total_items = 0
     train_model.train()
+    if loop.max_minutes > 0 and elapsed_before >= 60 * loop.max_minutes:
+        bar.write(f"{ckpt_path}: the run has trained {elapsed_before / 60:.1f} min of its loop.max_minutes="
+                  f"{loop.max_minutes:g} already; nothing to do (raise loop.max_minutes to train on)")
+        loader = []
     for batch in loader:
         torch.manual_seed(loop.seed * 1_000_003 + step * dist_info.world_size + dist_info.rank)
         with autocast():
@@ -323,6 +331,14 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             torch.nn.utils.clip_grad_norm_(model.parameters(), optim.clip_grad_norm)
         optimizer.step()
         scheduler.step()
+        elapsed = elapsed_before + time.perf_counter() - t_start
+        out_of_time = loop.max_minutes > 0 and elapsed > 60 * loop.max_minutes
+        done = elapsed / (60 * loop.max_minutes) if loop.max_minutes > 0 else (step + 1) / loop.steps
+        # ranks agree on stopping and on the learning rate (their clocks differ slightly)
+        out_of_time, done = all_reduce_mean(torch.tensor([float(out_of_time), done]), dist_info).tolist()
+        stop = out_of_time > 0
+        for group in optimizer.param_groups:  # LambdaLR sets the lr from scratch at each of its steps
+            group["lr"] *= budget_factor(done, optim)
         step += 1
         items_interval += loop.batch_size * dist_info.world_size
         total_items += loop.batch_size * dist_info.world_size
@@ -336,13 +352,11 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             dt = time.perf_counter() - t_interval
             last_losses = {k: v / n_sum for k, v in sums.items()}
             rate = items_interval / max(dt, 1e-9)
-            log({"type": "train", "step": step, "lr": scheduler.get_last_lr()[0], "items_per_s": rate,
+            log({"type": "train", "step": step, "lr": optimizer.param_groups[0]["lr"], "items_per_s": rate,
                  "elapsed_s": elapsed_before + time.perf_counter() - t_start,
                  **{f"loss/{k}": v for k, v in last_losses.items()}})
             bar.set_postfix(loss=f"{last_losses['total']:.4g}", items_s=f"{rate:.1f}")
             sums, n_sum, items_interval, t_interval = {}, 0, 0, time.perf_counter()
-        out_of_time = loop.max_minutes > 0 and (time.perf_counter() - t_start) > 60 * loop.max_minutes
-        stop = all_reduce_mean(torch.tensor([float(out_of_time)]), dist_info).item() > 0
         if loop.val_every > 0 and (step % loop.val_every == 0 or step == loop.steps or stop):
             if dist_info.is_main:
                 model.eval()

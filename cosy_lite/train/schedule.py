@@ -1,7 +1,9 @@
-"""Optimiser and learning-rate schedule: Adam, linear warm-up, step decay."""
+"""Optimiser and learning-rate schedule: Adam, linear warm-up, then step decay or a cosine decay over
+the run's budget (its training minutes, or its steps without a time limit)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -10,7 +12,12 @@ import torch
 @dataclass
 class OptimConfig:
     """Adam with linear warm-up from ``lr / warmup_steps`` to ``lr``, then x``decay_factor`` at each
-    step of ``decay_steps``; gradients clipped to ``clip_grad_norm`` (0 = no clipping)."""
+    step of ``decay_steps``; gradients clipped to ``clip_grad_norm`` (0 = no clipping).
+
+    ``schedule = "cosine"`` multiplies that by a cosine from 1 to ``cosine_floor`` over the fraction of
+    the run done: its training time over ``loop.max_minutes`` when that is set (so a time-capped run
+    ends at the low rate whatever its speed), else its steps over ``loop.steps``.
+    """
 
     lr: float = 3e-4
     weight_decay: float = 0.0
@@ -18,6 +25,11 @@ class OptimConfig:
     decay_steps: list[int] = field(default_factory=list)
     decay_factor: float = 0.1
     clip_grad_norm: float = 10.0
+    schedule: str = "step"
+    cosine_floor: float = 0.05
+
+
+SCHEDULES = ("step", "cosine")
 
 
 def lr_factor(step: int, cfg: OptimConfig) -> float:
@@ -25,6 +37,14 @@ def lr_factor(step: int, cfg: OptimConfig) -> float:
     warm = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
     n_decays = sum(step >= s for s in cfg.decay_steps)
     return warm * cfg.decay_factor**n_decays
+
+
+def budget_factor(done_fraction: float, cfg: OptimConfig) -> float:
+    """Multiplier from the run's schedule at ``done_fraction`` of its budget (1 for ``"step"``)."""
+    if cfg.schedule != "cosine":
+        return 1.0
+    f = min(max(done_fraction, 0.0), 1.0)
+    return cfg.cosine_floor + (1.0 - cfg.cosine_floor) * 0.5 * (1.0 + math.cos(math.pi * f))
 
 
 def build_optimizer(params, cfg: OptimConfig) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
