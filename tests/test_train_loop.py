@@ -22,10 +22,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run(out: Path, steps: int, resume: bool = False, batch: int = 8, noise: float = 0.01, schedule: str = "step",
-         task: ToyTask | None = None, **loop_kw):
+         floor: float = 0.05, task: ToyTask | None = None, **loop_kw):
     loop = LoopConfig(steps=steps, batch_size=batch, num_workers=0, log_every=5, val_every=10,
                       checkpoint_every=5, device="cpu", **loop_kw)
-    optim = OptimConfig(lr=3e-2, warmup_steps=5, schedule=schedule, cosine_floor=0.1)
+    optim = OptimConfig(lr=3e-2, warmup_steps=5, schedule=schedule, cosine_floor=floor)
     cfg = {"loop": dataclasses.asdict(loop), "optim": dataclasses.asdict(optim)}
     return train(task or ToyTask(noise=noise), loop, optim, out, config=cfg, resume=resume, progress=False)
 
@@ -56,15 +56,15 @@ def test_cosine_schedule_over_the_budget():
 
 
 def test_cosine_run_ends_at_the_floor_and_resumes_exactly(tmp_path):
-    _run(tmp_path / "a", steps=20, schedule="cosine")
+    _run(tmp_path / "a", steps=20, schedule="cosine", floor=0.1)
     lrs = [json.loads(x)["lr"] for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()
            if json.loads(x)["type"] == "train"]
     # warm-up to step 5, then the cosine of (step + 1) / 20: the rate logged after step 20 is the floor
     assert lrs[0] == pytest.approx(3e-2 * budget_factor(5 / 20, OptimConfig(schedule="cosine", cosine_floor=0.1)))
     assert lrs[-1] == pytest.approx(3e-3) and lrs == sorted(lrs, reverse=True)
     with pytest.raises(KeyboardInterrupt):
-        _run(tmp_path / "b", steps=20, schedule="cosine", task=_InterruptedToyTask(at=10))
-    _run(tmp_path / "b", steps=20, schedule="cosine", resume=True)
+        _run(tmp_path / "b", steps=20, schedule="cosine", floor=0.1, task=_InterruptedToyTask(at=10))
+    _run(tmp_path / "b", steps=20, schedule="cosine", floor=0.1, resume=True)
     a = load_checkpoint(tmp_path / "a" / "checkpoint.pt").model
     b = load_checkpoint(tmp_path / "b" / "checkpoint.pt").model
     for k in a:
@@ -113,6 +113,18 @@ def test_resume_refuses_a_different_config(tmp_path):
     _run(tmp_path, steps=5)
     with pytest.raises(CheckpointError, match="loop.batch_size"):
         _run(tmp_path, steps=10, resume=True, batch=4)
+
+
+def test_resume_a_checkpoint_older_than_a_setting(tmp_path):
+    _run(tmp_path, steps=5)
+    ck = load_checkpoint(tmp_path / "checkpoint.pt")
+    for key in ("schedule", "cosine_floor"):  # written before these settings existed
+        del ck.config["optim"][key]
+    save_checkpoint(tmp_path / "checkpoint.pt", ck)
+    assert _run(tmp_path, steps=10, resume=True).steps_done == 10  # the new value that behaves as before
+    save_checkpoint(tmp_path / "checkpoint.pt", ck)
+    with pytest.raises(CheckpointError, match="optim.schedule: 'step' -> 'cosine'"):
+        _run(tmp_path, steps=10, resume=True, schedule="cosine")
 
 
 def test_time_budget_stops_with_a_checkpoint(tmp_path):

@@ -42,6 +42,9 @@ LOG_NAME = "log.jsonl"
 # Config keys allowed to differ when resuming (how long to train, not what to train).
 RESUMABLE_CHANGES = ("loop.steps", "loop.max_minutes", "loop.val_every", "loop.log_every",
                      "loop.checkpoint_every", "loop.num_workers", "loop.device")
+# Settings added after checkpoints were written, with the value that behaves as before they existed: a
+# checkpoint whose config lacks one resumes when the new config has that value.
+ADDED_SETTINGS = {"optim.schedule": "step", "optim.cosine_floor": 0.05}
 
 
 @dataclass
@@ -101,6 +104,7 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def _check_same_config(path: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
     a, b = _flatten(old), _flatten(new)
+    a.update({k: v for k, v in ADDED_SETTINGS.items() if k not in a})
     diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
     if diff:
         details = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in diff[:8])
