@@ -9,11 +9,18 @@ Loading never runs code: files are read with ``torch.load(weights_only=True)`` (
 data only), so a crafted file that would execute a payload when unpickled is refused with a
 :class:`CheckpointError`. :func:`save_checkpoint` therefore stores plain data only (dicts, lists,
 tuples, str, numbers, bools, None, tensors): dataclasses become dicts, paths strings.
+
+Trained weights that leave a run to be handed on (the GPU run's results, reference models) are
+``.safetensors`` files (:func:`save_weights`): the model's tensors (floating point ones in fp16 by
+default) and, in safetensors' string metadata, the kind, step, full config and model metadata as
+JSON, without the optimiser. Reading them parses tensors and JSON only; :func:`load_checkpoint` reads
+them too (by their suffix), so every loader of checkpoints accepts them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import pickle
 import re
@@ -29,6 +36,9 @@ from cosy_lite.errors import CosyLiteError
 
 CHECKPOINT_FORMAT = 1
 REQUIRED_KEYS = ("format", "kind", "model", "config", "step")
+WEIGHTS_FORMAT = "cosy_lite-weights-1"
+WEIGHTS_SUFFIX = ".safetensors"
+_WEIGHTS_FIELDS = ("format", "kind", "step", "config", "meta", "version")
 
 
 TMP_INFIX = ".tmp"  # temporary file of a write in progress: .NAME.tmpPID
@@ -169,6 +179,12 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
     or holds another kind of model than ``kind``.
     """
     path = Path(path)
+    if path.suffix == WEIGHTS_SUFFIX:
+        ckpt = load_weights(path)
+        kinds = (kind,) if isinstance(kind, str) else kind
+        if kinds is not None and ckpt.kind not in kinds:
+            raise CheckpointError(path, f"metadata field 'kind' is {ckpt.kind!r}, expected one of {list(kinds)}")
+        return ckpt
     if not path.is_file():
         raise CheckpointError(path, "checkpoint file not found")
     try:
@@ -202,3 +218,68 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
         meta=payload.get("meta", {}),
         version=payload.get("version", "?"),
     )
+
+
+
+def _plain_json(value: Any, path: Path, field: str) -> str:
+    text = json.dumps(value, sort_keys=True)
+    if json.loads(text) != value:  # e.g. a dict with int keys, a tuple: it would not come back equal
+        raise CheckpointError(path, f"field '{field}' does not survive JSON unchanged; expected plain JSON data")
+    return text
+
+
+def save_weights(path: str | Path, ckpt: Checkpoint, dtype: torch.dtype = torch.float16) -> None:
+    """Write ``ckpt``'s model (floating tensors as ``dtype``) + kind, step, config, meta (atomically)."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    tensors = {k: (v.detach().to(dtype) if v.is_floating_point() else v.detach()).contiguous().cpu()
+               for k, v in ckpt.model.items()}
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(path, f"tensors {bad[:5]} are not finite in {dtype} (overflow?); expected finite weights")
+    meta = {"format": WEIGHTS_FORMAT, "kind": ckpt.kind, "step": str(int(ckpt.step)),
+            "config": _plain_json(ckpt.config, path, "config"), "meta": _plain_json(ckpt.meta, path, "meta"),
+            "version": cosy_lite.__version__}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_path(path)
+    try:
+        save_file(tensors, str(tmp), metadata=meta)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def load_weights(path: str | Path) -> Checkpoint:
+    """The :class:`Checkpoint` of a weights file (float32 tensors; no training state).
+    Raises :class:`CheckpointError` naming the file and field for anything unusable."""
+    from safetensors import SafetensorError, safe_open
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(path, "weights file not found")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
+        raise CheckpointError(path, f"not a readable safetensors file ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+    missing = [k for k in _WEIGHTS_FIELDS if k not in header]
+    if missing:
+        raise CheckpointError(path, f"missing metadata field(s) {missing}: not a cosy_lite weights file")
+    if header["format"] != WEIGHTS_FORMAT:
+        raise CheckpointError(path, f"metadata field 'format' is {header['format']!r}, this version reads {WEIGHTS_FORMAT!r}")
+    values = {}
+    for key in ("step", "config", "meta"):
+        try:
+            values[key] = json.loads(header[key])
+        except json.JSONDecodeError:
+            raise CheckpointError(path, f"metadata field '{key}' is not JSON") from None
+    if not isinstance(values["step"], int) or values["step"] < 0:
+        raise CheckpointError(path, f"metadata field 'step' is {header['step']!r}; expected an integer >= 0")
+    for key in ("config", "meta"):
+        if not isinstance(values[key], dict):
+            raise CheckpointError(path, f"metadata field '{key}' is not a JSON object")
+    model = {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}
+    return Checkpoint(kind=header["kind"], model=model, config=values["config"], step=values["step"],
+                      meta=values["meta"], version=header["version"])
