@@ -372,6 +372,15 @@ def _shifted_centre(crop_boxes):
     return buggy
 
 
+def _shifted_pixels(crop_images):
+    def buggy(images, boxes, *args, **kwargs):
+        boxes = boxes.clone() if isinstance(boxes, torch.Tensor) else boxes.copy()
+        boxes[:, 0::2] += 1.0  # the pixels cropped 1 px right of the box that K_crop describes
+        return crop_images(images, boxes, *args, **kwargs)
+
+    return buggy
+
+
 def _shifted_cx(crop_intrinsics):
     def buggy(*args, **kwargs):
         K_crop = crop_intrinsics(*args, **kwargs)
@@ -405,6 +414,7 @@ def _rotation_on_the_right(apply_pose_update):
 BUGS = {
     "crop_margin_1.5": ("crop_boxes", _wider_margin, {"crop"}, False),
     "crop_centre_+2px": ("crop_boxes", _shifted_centre, {"crop"}, False),
+    "crop_pixels_+1px": ({"torch": "crop_images", "numpy": "crop_image"}, _shifted_pixels, {"crop", "render"}, False),
     "render_K_crop_cx_+2px": ("crop_intrinsics", _shifted_cx, {"render"}, False),
     "update_vx_vy_swapped": ("apply_pose_update", _swapped_vxvy, {"crop", "render"}, True),
     "update_rotation_on_the_right": ("apply_pose_update", _rotation_on_the_right, {"crop", "render"}, True),
@@ -418,6 +428,7 @@ LOOP_MODULES = {"torch": render_and_compare, "numpy": iterate_np}
 def test_injected_bug_is_caught(scene, backend, bug, monkeypatch):
     name, make_buggy, expected_flags, misses_gt = BUGS[bug]
     module = LOOP_MODULES[backend]
+    name = name[backend] if isinstance(name, dict) else name  # the loops' own names for it
     monkeypatch.setattr(module, name, make_buggy(getattr(module, name)))
     oracle, rot_deg, trans_mm = _run(scene, backend)
     kinds = {kind for kind, _ in oracle.flags}
