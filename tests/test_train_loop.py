@@ -93,6 +93,16 @@ def test_training_lowers_loss_and_writes_run_folder(tmp_path):
     assert ck.step == 40 and ck.meta == {"n_out": 3} and ck.config["loop"]["steps"] == 40
 
 
+def test_validation_at_start_logs_the_untrained_model_once(tmp_path):
+    _run(tmp_path, steps=20, val_at_start=True)
+    vals = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines() if '"val"' in line]
+    assert [v["step"] for v in vals] == [0, 10, 20]
+    assert vals[-1]["val/mae"] < 0.5 * vals[0]["val/mae"]  # the held-out error moved
+    _run(tmp_path, steps=30, resume=True, val_at_start=True)  # a resumed run does not validate step 0 again
+    vals = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines() if '"val"' in line]
+    assert [v["step"] for v in vals] == [0, 10, 20, 30]
+
+
 def test_resume_reproduces_the_uninterrupted_run(tmp_path):
     _run(tmp_path / "a", steps=20)
     _run(tmp_path / "b", steps=10)  # "interrupted" after its checkpoint at step 10

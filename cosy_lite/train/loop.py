@@ -41,7 +41,7 @@ CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "log.jsonl"
 # Config keys allowed to differ when resuming (how long to train, not what to train).
 RESUMABLE_CHANGES = ("loop.steps", "loop.max_minutes", "loop.val_every", "loop.log_every",
-                     "loop.checkpoint_every", "loop.num_workers", "loop.device")
+                     "loop.checkpoint_every", "loop.num_workers", "loop.device", "loop.val_at_start")
 # Settings added after checkpoints were written, with the value that behaves as before they existed: a
 # checkpoint whose config lacks one resumes when the new config has that value.
 ADDED_SETTINGS = {"optim.schedule": "step", "optim.cosine_floor": 0.05}
@@ -57,6 +57,7 @@ class LoopConfig:
     num_workers: int = 2
     log_every: int = 20
     val_every: int = 500
+    val_at_start: bool = False  # also validate the untrained model (step 0; not counted in max_minutes)
     checkpoint_every: int = 100
     max_minutes: float = 0.0
     seed: int = 0
@@ -306,6 +307,12 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             with open(log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
+    if loop.val_at_start and loop.val_every > 0 and start_step == 0 and dist_info.is_main:
+        train_model.eval()
+        with torch.no_grad():
+            first_val = task.validate(model, device)
+        log({"type": "val", "step": 0, **{f"val/{k}": v for k, v in first_val.items()}})
+        print("step 0: " + ", ".join(f"{k} {v:.4g}" for k, v in first_val.items()), flush=True)
     bar = tqdm(total=loop.steps, initial=start_step, desc=f"train {task.kind}", unit="step",
                disable=None if (progress and dist_info.is_main) else True, dynamic_ncols=True)  # None: only on a terminal
     t_start = time.perf_counter()
