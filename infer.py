@@ -8,6 +8,7 @@ hand over to :func:`cosy_lite.inference.bop_run.run_on_split` (ViVo targets, CSV
     python infer.py --dataset ycbvsynth --detector runs/ycbvsynth-detector/checkpoint.pt \\
         --coarse runs/ycbvsynth-coarse/checkpoint.pt --refiner runs/ycbvsynth-refiner/checkpoint.pt \\
         --out results/ --vis 8
+    python infer.py --dataset ycbvsynth --pretrained ycbvsynth --out results/   # the shipped reference models
     python infer.py --dataset ycbvsynth --backend onnx --models models/ --threads 2 --out results/
 """
 
@@ -28,16 +29,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="6d-localization (BOP19: the inst_count best detections per target of test_targets_bop19.json) "
                          "or 6d-detection (BOP 2024/2025: every detection, at most 100 per image, of the images "
                          "of test_targets_bop24.json)")
+    ap.add_argument("--pretrained", default=None, metavar="NAME",
+                    help="the shipped reference models NAME (e.g. ycbvsynth: cosy_lite/reference/NAME/) with their "
+                         "inference settings; --detector/--coarse/--refiner/--start/--candidates given as well win")
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
     ap.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
-    ap.add_argument("--start", default="coarse", choices=["coarse", "templates"],
-                    help="start poses: coarse (box pose -> the coarse network, CosyPose) or templates (the detection "
-                         "mask matched against rendered silhouettes; no coarse network needed)")
+    ap.add_argument("--start", default=None, choices=["coarse", "templates"],
+                    help="start poses: coarse (box pose -> the coarse network, CosyPose; the default) or templates "
+                         "(the detection mask matched against rendered silhouettes; no coarse network needed)")
     ap.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
                     help="--start templates: keep the rendered templates in DIR between runs (default: render each run)")
-    ap.add_argument("--candidates", type=int, default=1, metavar="K",
+    ap.add_argument("--candidates", type=int, default=None, metavar="K",
                     help="--start templates: the K best templates each get one refiner iteration, the most "
                          "confident goes on (K > 1 needs a flow refiner; default 1)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
@@ -69,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # backend -> arguments that only it takes (anything given there for the other backend is an error)
-BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector"), "onnx": ("models",)}
+BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector", "pretrained"), "onnx": ("models",)}
 PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
 
 
@@ -114,9 +118,11 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.inference.icp import IcpConfig
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
+    from cosy_lite.reference.catalog import fill_arguments
     from cosy_lite.synth.command import dataset_folder
 
     use_egl()
+    fill_arguments(args, args.backend == "torch")
     problem = _backend_problem(args) or _argument_problem(args)
     if problem:
         print(f"error: {problem}", file=sys.stderr)

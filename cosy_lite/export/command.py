@@ -9,6 +9,8 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pretrained", default=None, metavar="NAME",
+                   help="the shipped reference models NAME (e.g. ycbvsynth); --detector/--coarse/--refiner given as well win")
     p.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint -> detector.onnx")
     p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint -> coarse.onnx")
     p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint -> refiner.onnx")
@@ -21,8 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.export.onnx_export import describe, export_models
 
+    from cosy_lite.reference.catalog import fill_arguments
+
+    fill_arguments(args)
     if args.detector is None and args.coarse is None and args.refiner is None:
-        print("error: give at least one of --detector, --coarse, --refiner", file=sys.stderr)
+        print("error: give --pretrained NAME or at least one of --detector, --coarse, --refiner", file=sys.stderr)
         return 2
     if args.opset < 11:
         print(f"error: --opset {args.opset}: Mask R-CNN needs >= 11", file=sys.stderr)

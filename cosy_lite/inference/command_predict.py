@@ -48,6 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="intrinsics: BOP camera.json (fx, fy, cx, cy), a scene_camera entry (cam_K) or {\"K\": 3x3}")
     p.add_argument("--models", required=True, metavar="NAME_OR_DIR",
                    help="the objects' 3D models: a BOP models/ folder, a dataset folder, or a dataset name")
+    p.add_argument("--pretrained", default=None, metavar="NAME",
+                   help="the shipped reference models NAME (e.g. ycbvsynth) with their inference settings (torch backend); "
+                        "--coarse/--refiner/--detector/--start/--candidates given as well win")
     p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint (torch backend)")
     p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (torch backend)")
     p.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint (torch backend)")
@@ -58,10 +61,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", type=_obj_ids, default=None, metavar="1,5", help="estimate only these objects")
     p.add_argument("--icp", action="store_true", help="refine with --depth (point-to-plane ICP)")
     p.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
-    p.add_argument("--start", default="coarse", choices=["coarse", "templates"],
+    p.add_argument("--start", default=None, choices=["coarse", "templates"],
                    help="start poses: coarse network (default) or silhouette templates matched to the detection "
                         "masks (no coarse checkpoint needed)")
-    p.add_argument("--candidates", type=int, default=1, metavar="K",
+    p.add_argument("--candidates", type=int, default=None, metavar="K",
                    help="--start templates: templates tried per detection, the flow refiner's most confident kept")
     p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
                    help="--start templates: keep the rendered templates in DIR between runs")
@@ -101,8 +104,8 @@ def models_folder(name_or_dir: str) -> Path:
 
 
 def _argument_problem(args: argparse.Namespace) -> str | None:
-    if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector)):
-        return "give either checkpoints (--coarse/--refiner/--detector) or --onnx EXPORT_DIR, not both"
+    if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector, args.pretrained)):
+        return "give either checkpoints (--pretrained/--coarse/--refiner/--detector) or --onnx EXPORT_DIR, not both"
     if args.onnx is None and args.coarse is None and not (args.start == "templates" and args.refiner is not None):
         return ("give --coarse CKPT [--refiner CKPT --detector CKPT] (torch), --start templates --refiner CKPT, "
                 "or --onnx EXPORT_DIR (onnxruntime)")
@@ -201,9 +204,11 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.results import PoseEstimate, estimate_to_json, write_results_csv
     from cosy_lite.inference.predictor import TIMING_KEYS, SetupError
+    from cosy_lite.reference.catalog import fill_arguments
     from cosy_lite.render.gl import use_egl
 
     use_egl()
+    fill_arguments(args, use_networks=args.onnx is None)
     if problem := _argument_problem(args):
         print(f"error: {problem}", file=sys.stderr)
         return 2

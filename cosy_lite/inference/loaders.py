@@ -100,7 +100,7 @@ class OnnxModels:
     """The networks of an export folder in onnxruntime; detector/refiner None when not exported
     (or not asked for)."""
 
-    coarse: PoseModel
+    coarse: PoseModel | None  # None: only start="templates" works
     refiner: PoseModel | None
     detector: Any  # OnnxDetector | None
     manifest: Any  # cosy_lite.export.manifest.Manifest
@@ -116,7 +116,7 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
         detector: load ``detector.onnx`` when the folder has one.
     Raises OnnxModelError naming the file and field: no manifest, a listed file missing, truncated
     or replaced, not loadable, or its metadata not matching the manifest (kind, obj_ids, crop size,
-    6 input channels); no coarse model.
+    6 input channels); no pose model at all.
     """
     from cosy_lite.export.manifest import Manifest, OnnxModelError
     from cosy_lite.export.onnx_models import OnnxDetector, OnnxPoseNet
@@ -140,9 +140,9 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
         pose[role] = PoseModel(net, role, net.crop_resolution, net.obj_ids, net.path,
                                str(net.config.get("render_shading", "flat")),
                                "flow" if net.config.get("arch") == "flow" else "delta")
-    if pose["coarse"] is None:
-        raise OnnxModelError(manifest.path, "models.coarse", "missing: the export has no coarse model "
-                             f"(it has {sorted(manifest.models)})")
+    if pose["coarse"] is None and pose["refiner"] is None:
+        raise OnnxModelError(manifest.path, "models", "the export has no pose model (coarse or refiner; "
+                             f"it has {sorted(manifest.models)})")
     det = None
     if detector and manifest.entry("detector") is not None:
         det = OnnxDetector(manifest.file("detector"), threads, manifest.models["detector"], "detector", spinning)

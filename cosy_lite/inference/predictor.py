@@ -474,6 +474,35 @@ class Predictor:
                    syms, device, precision=precision, start=start, n_candidates=n_candidates, templates=templates)
 
     @classmethod
+    def from_pretrained(
+        cls, name: str, models_dir: str | Path | None = None, dataset: Any = None, detector: bool = True,
+        device: str | torch.device = "cpu", icp: bool = False, icp_config: IcpConfig | None = None,
+        obj_ids: Sequence[int] | None = None, precision: str = "fp32", start: str | None = None,
+        n_candidates: int | None = None, n_refiner_iterations: int | None = None,
+        templates_cache: str | Path | None = None,
+    ) -> "Predictor":
+        """The shipped reference models ``name`` (:mod:`cosy_lite.reference.catalog`, e.g.
+        ``"ycbvsynth"``) with the set's inference settings (start poses, candidates, refiner
+        iterations) where ``start`` / ``n_candidates`` / ``n_refiner_iterations`` are None.
+
+        detector: use the set's detector (False: detections are passed to :meth:`predict`); the
+        other arguments as :meth:`from_checkpoints`. Raises ReferenceModelError for an unknown name.
+        """
+        from cosy_lite.reference.catalog import reference_models
+
+        ref = reference_models(name)
+        start = start or ref.setting("start")
+        if n_candidates is None:
+            n_candidates = ref.setting("n_candidates") if start == ref.setting("start") else 1
+        if n_refiner_iterations is None:
+            n_refiner_iterations = ref.setting("n_refiner_iterations")
+        return cls.from_checkpoints(
+            detector=ref.path("detector") if detector else None, coarse=ref.path("coarse"),
+            refiner=ref.path("refiner"), models_dir=models_dir, dataset=dataset, device=device,
+            n_refiner_iterations=n_refiner_iterations, icp=icp, icp_config=icp_config, obj_ids=obj_ids,
+            precision=precision, start=start, n_candidates=n_candidates, templates_cache=templates_cache)
+
+    @classmethod
     def from_onnx(
         cls, export_dir: str | Path, models_dir: str | Path | None = None, dataset: Any = None,
         n_refiner_iterations: int = 4, icp: bool = False, icp_config: IcpConfig | None = None,
@@ -508,11 +537,16 @@ class Predictor:
 
         onnx = load_onnx_models(export_dir, threads, precision, detector, spinning)
         models = _object_models(models_dir, dataset)
-        coarse_name = "coarse" + ("" if precision == "fp32" else f".{precision}")
-        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(onnx.coarse.obj_ids)
+        role = "coarse" if onnx.coarse is not None else "refiner"
+        if onnx.coarse is None and start == "coarse":
+            raise OnnxModelError(onnx.manifest.path, "models.coarse", "missing: the export has no coarse model "
+                                 f"(it has {sorted(onnx.manifest.models)}); export one or use start='templates'")
+        first_name = role + ("" if precision == "fp32" else f".{precision}")
+        first = onnx.coarse if onnx.coarse is not None else onnx.refiner
+        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
         unknown = sorted(set(ids) - set(models.obj_ids))
         if unknown:
-            field_ = "argument obj_ids" if obj_ids else f"models.{coarse_name}.obj_ids"
+            field_ = "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids"
             raise OnnxModelError(onnx.manifest.path, field_, f"obj_ids {unknown} have no model in "
                                  f"{models.models_dir / 'models_info.json'} (it has {models.obj_ids})")
         if onnx.refiner is None:
@@ -525,8 +559,8 @@ class Predictor:
 
     @property
     def backend(self) -> str:
-        """"torch" or "onnx" (networks in onnxruntime)."""
-        return "torch" if all(isinstance(n, nn.Module) for n in self._nets.values()) else "onnx"
+        """"onnx" when the pose networks run in onnxruntime (the numpy loop), else "torch"."""
+        return "onnx" if self.numpy_loop else "torch"
 
     @property
     def numpy_loop(self) -> bool:

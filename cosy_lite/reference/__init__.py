@@ -1,0 +1,1 @@
+"""Reference models shipped with the package (:mod:`cosy_lite.reference.catalog`)."""

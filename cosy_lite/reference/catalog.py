@@ -1,0 +1,137 @@
+"""Reference models: trained networks shipped inside the package, one folder per dataset.
+
+``cosy_lite/reference/NAME/`` holds, for the dataset NAME (e.g. ``ycbvsynth``), each trained network
+as ``KIND.safetensors`` (fp16 weights + the training config and metadata as JSON,
+:func:`~cosy_lite.train.checkpoint.save_weights`: loading runs no code) with its card ``KIND.json``
+(dataset, object ids, exact training command, steps, crops seen, wall time, machine, held-out
+metrics), and ``pipeline.json``: how the set is meant to run (start poses, candidates, refiner
+iterations) and what the whole pipeline measured on the dataset's test split.
+
+:func:`reference_models` finds a set by name (``Predictor.from_pretrained(NAME)``, ``infer.py
+--pretrained NAME``); :func:`publish` writes one network of a set from a training run.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cosy_lite.errors import CosyLiteError
+
+KINDS = ("detector", "coarse", "refiner")
+PIPELINE_FILE = "pipeline.json"
+# infer.py settings of a set when its pipeline.json does not say otherwise
+DEFAULT_PIPELINE = {"start": "coarse", "n_candidates": 1, "n_refiner_iterations": 4}
+_NAME = re.compile(r"^[A-Za-z0-9]+$")  # a BOP dataset name: no '_' or '-'
+
+
+def reference_root() -> Path:
+    """The folder of the shipped sets (inside the installed package)."""
+    return Path(__file__).resolve().parent
+
+
+class ReferenceModelError(CosyLiteError):
+    """A reference-model set that does not exist or whose files are unusable; names the file and field."""
+
+
+@dataclass
+class ReferenceModels:
+    """One set: ``weights[kind]`` the ``.safetensors`` files present, ``cards[kind]`` their cards,
+    ``pipeline`` the set's inference settings and end-to-end metrics."""
+
+    name: str
+    folder: Path
+    weights: dict[str, Path]
+    cards: dict[str, dict[str, Any]]
+    pipeline: dict[str, Any] = field(default_factory=dict)
+
+    def path(self, kind: str) -> Path | None:
+        """The weights file of ``kind`` ("detector", "coarse", "refiner"), None if the set has none."""
+        return self.weights.get(kind)
+
+    def setting(self, key: str) -> Any:
+        """An inference setting of :data:`DEFAULT_PIPELINE` as the set's ``pipeline.json`` gives it."""
+        return self.pipeline.get("inference", {}).get(key, DEFAULT_PIPELINE[key])
+
+    def describe(self) -> str:
+        kinds = ", ".join(k for k in KINDS if k in self.weights)
+        return f"reference models {self.name!r} ({kinds}; {self.folder})"
+
+
+def reference_names(root: Path | None = None) -> list[str]:
+    """Names of the shipped sets (folders with at least one weights file)."""
+    root = root or reference_root()
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("*.safetensors")))
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ReferenceModelError(f"{path}: not readable JSON ({type(e).__name__}: {e})") from None
+    if not isinstance(value, dict):
+        raise ReferenceModelError(f"{path}: expected a JSON object, got {type(value).__name__}")
+    return value
+
+
+def reference_models(name: str, root: Path | None = None) -> ReferenceModels:
+    """The set ``name``. Raises ReferenceModelError listing the available names if there is none."""
+    root = root or reference_root()
+    folder = root / name
+    if not _NAME.match(name) or not folder.is_dir():
+        raise ReferenceModelError(f"no reference models named {name!r} (available: {reference_names(root)})")
+    weights = {k: folder / f"{k}.safetensors" for k in KINDS if (folder / f"{k}.safetensors").is_file()}
+    if not weights:
+        raise ReferenceModelError(f"{folder}: no weights file ({', '.join(k + '.safetensors' for k in KINDS)})")
+    cards = {k: _read_json(folder / f"{k}.json") for k in weights if (folder / f"{k}.json").is_file()}
+    pipeline = _read_json(folder / PIPELINE_FILE) if (folder / PIPELINE_FILE).is_file() else {}
+    for key, value in pipeline.get("inference", {}).items():
+        if key not in DEFAULT_PIPELINE or type(value) is not type(DEFAULT_PIPELINE[key]):
+            raise ReferenceModelError(f"{folder / PIPELINE_FILE}: field 'inference.{key}' = {value!r} is not one of "
+                                      f"{ {k: type(v).__name__ for k, v in DEFAULT_PIPELINE.items()} }")
+    return ReferenceModels(name, folder, weights, cards, pipeline)
+
+
+def fill_arguments(args: Any, use_networks: bool = True) -> None:
+    """Complete a command line's namespace from its ``--pretrained NAME`` (``args.pretrained``): the
+    set's networks where ``args.detector`` / ``.coarse`` / ``.refiner`` are None (``use_networks``
+    False: left as they are, for a backend that does not take them), and, where the namespace has
+    them and they are None, ``args.start`` / ``args.candidates`` (the set's settings, else the
+    defaults of :data:`DEFAULT_PIPELINE`). Raises ReferenceModelError for an unknown name."""
+    settings = {"start": DEFAULT_PIPELINE["start"], "candidates": DEFAULT_PIPELINE["n_candidates"]}
+    if getattr(args, "pretrained", None) is not None and use_networks:
+        ref = reference_models(args.pretrained)
+        for kind in KINDS:
+            if getattr(args, kind) is None:
+                setattr(args, kind, ref.path(kind))
+        settings = {"start": ref.setting("start"), "candidates": ref.setting("n_candidates")}
+        if getattr(args, "start", None) not in (None, settings["start"]):
+            settings["candidates"] = 1  # the set's candidate count belongs to its own start
+    for key, value in settings.items():
+        if hasattr(args, key) and getattr(args, key) is None:
+            setattr(args, key, value)
+
+
+def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) -> tuple[Path, Path]:
+    """Write the network of a training ``checkpoint`` into the set ``folder`` as fp16
+    ``KIND.safetensors`` and its card ``KIND.json``: ``card`` (command, machine, metrics ...) plus
+    what the checkpoint knows (kind, dataset, object ids, step, config, training seconds)."""
+    from cosy_lite.train.checkpoint import load_checkpoint, save_weights
+
+    ckpt = load_checkpoint(checkpoint)
+    if ckpt.kind not in KINDS:
+        raise ReferenceModelError(f"{checkpoint}: kind {ckpt.kind!r} is not one of {KINDS}")
+    folder = Path(folder)
+    weights = folder / f"{ckpt.kind}.safetensors"
+    save_weights(weights, ckpt)
+    known = {"kind": ckpt.kind, "dataset": ckpt.meta.get("dataset", ckpt.config.get("dataset")),
+             "obj_ids": ckpt.meta.get("obj_ids") or ckpt.meta.get("label_map", {}).get("obj_ids"),
+             "steps": ckpt.step, "training_seconds": round(float(ckpt.train_state.get("elapsed_s", 0.0)), 1),
+             "weights": weights.name, "weights_bytes": weights.stat().st_size, "weights_dtype": "float16",
+             "config": ckpt.config}
+    card_path = folder / f"{ckpt.kind}.json"
+    card_path.write_text(json.dumps({**known, **card}, indent=1) + "\n")
+    return weights, card_path

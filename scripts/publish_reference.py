@@ -1,0 +1,48 @@
+"""Write a training run's network into the shipped reference models (fp16 safetensors + JSON card).
+
+    python scripts/publish_reference.py --checkpoint runs/ref/detector/checkpoint.pt --name ycbvsynth \\
+        --world-size 2 --command "OMP_NUM_THREADS=1 torchrun ... train.py ..." [--metrics X.json ...]
+
+The card gets what the checkpoint knows (kind, dataset, object ids, steps, config, training seconds)
+plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
+given (merged under "metrics"). Folder: cosy_lite/reference/NAME/ (cosy_lite.reference.catalog).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+from datetime import date
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    from cosy_lite.reference.catalog import publish, reference_root
+    from cosy_lite.train.checkpoint import load_checkpoint
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--name", required=True, help="the set (dataset name), e.g. ycbvsynth")
+    ap.add_argument("--command", required=True, help="the exact training command(s) that made the checkpoint")
+    ap.add_argument("--world-size", type=int, default=1, help="training processes (DDP)")
+    ap.add_argument("--machine", default=f"{platform.machine()} CPU, {platform.node() or 'unknown'}; no GPU")
+    ap.add_argument("--note", default="", help="anything else a user should know")
+    ap.add_argument("--metrics", type=Path, nargs="*", default=[], metavar="JSON",
+                    help="held-out metric files: each merged under metrics.<file stem>")
+    args = ap.parse_args(argv)
+    ckpt = load_checkpoint(args.checkpoint)
+    batch = int(ckpt.config.get("loop", {}).get("batch_size", 0))
+    unit = "images" if ckpt.kind == "detector" else "crops"
+    card = {"training_command": args.command, "machine": args.machine, "processes": args.world_size,
+            f"{unit}_seen": ckpt.step * batch * args.world_size, "published": date.today().isoformat(),
+            "source_checkpoint": str(args.checkpoint), "note": args.note,
+            "metrics": {p.stem: json.loads(p.read_text()) for p in args.metrics}}
+    weights, card_path = publish(args.checkpoint, reference_root() / args.name, card)
+    print(f"{weights} ({weights.stat().st_size / 2**20:.2f} MiB), {card_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
