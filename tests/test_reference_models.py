@@ -57,7 +57,7 @@ def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
     tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True).stdout.split()
     if not tracked:
         pytest.skip("not a git checkout")
-    weights = [f for f in tracked if f.endswith((".safetensors", ".pt", ".pth", ".onnx", ".ckpt", ".bin"))]
+    weights = [f for f in tracked if f.endswith((".safetensors", ".pt", ".pth", ".onnx", ".ckpt"))]  # (.bin: glTF meshes)
     assert weights and all(f.startswith("cosy_lite/reference/") for f in weights), weights
 
 
