@@ -7,17 +7,20 @@ export PYOPENGL_PLATFORM ?= egl
 # torch's OpenMP threads sleep instead of spinning while they wait: 4-20x faster on shared CPUs.
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo train test bench clean
 
 setup:
 	@bash scripts/setup.sh
 
-# generate -> train detector, coarse, refiner (demo profiles) -> infer (RGB, ICP, oracle boxes) -> eval
+# generate the test split (+100 training images) -> infer with the reference models (RGB, ICP, oracle
+# masks) -> evaluate -> a short training run of each network -> AR and training tables (~15 min)
 demo: setup
-	$(PY) -m cosy_lite.cli generate --out $(DATA)/ycbvsynth --workers 2
-	$(PY) -m cosy_lite.cli show $(DATA)/ycbvsynth --split test --scene 0 --image 0 --out outputs/demo_show_test_000000_000000.png
-	$(PY) -m cosy_lite.cli contact-sheet $(DATA)/ycbvsynth --split train_pbr -n 16 --out outputs/demo_contact_sheet.png
 	$(PY) -m cosy_lite.cli demo --data-root $(DATA)
+
+# the full from-scratch job: generate the whole dataset -> train detector and refiner (demo profiles,
+# ~26 min) -> infer -> evaluate (~42 min; outputs/train/)
+train: setup
+	$(PY) -m cosy_lite.cli demo --train --data-root $(DATA)
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,21 +1,25 @@
 """``cosy-lite demo``: the whole job end to end on the embedded default data (the README's main command).
 
 Steps, each a separate process (the commands a user would type), each skipped when its output
-is already there, so an interrupted demo continues where it stopped:
+is already there, so an interrupted demo continues where it stopped. By default (a dataset with
+shipped reference models, :mod:`cosy_lite.reference.catalog`):
 
-1. generate the default dataset ``ycbvsynth`` (if absent) and validate it;
-2. train the detector and the refiner (``configs/MODEL/demo.yaml`` with a shorter time budget per
-   model, :attr:`DemoConfig.train_minutes`), each as two single-threaded DDP processes; a run
-   folder with a checkpoint but no ``DONE`` marker is resumed. The poses start from silhouette
-   templates matched to the detection masks (``infer.py --start templates``): at this budget the
-   trained coarse network starts no better than the box pose (bench/RESULTS.md, issue 13), so it
-   is trained only with ``DemoConfig(start="coarse")``;
-3. infer on the test split: detector -> templates -> refiner -> depth ICP, and the same with oracle
-   (ground-truth) detections, so detector and pose errors can be told apart; each run also writes its
-   poses before ICP (the RGB-only results: ``infer.py --also-before-icp``); the two runs side by side,
-   one core each (logs in ``OUT/logs/``);
-4. evaluate every CSV (``cosy-lite eval``) and print one AR table (also written to
-   ``OUT/demo_summary.md`` and ``OUT/demo_ar.png``), with where the overlays are.
+1. generate the dataset's ``test`` split and a small part of ``train_pbr``
+   (:attr:`DemoConfig.short_train_images`) if absent, and validate it;
+2. infer on the test split with the reference models (``infer.py --pretrained NAME``: detector ->
+   silhouette templates -> refiner -> depth ICP), and the same with oracle (ground-truth) masks, so
+   detector and pose errors can be told apart; each run also writes its poses before ICP (the
+   RGB-only results: ``--also-before-icp``); the two runs side by side, one core each;
+3. evaluate every CSV (``cosy-lite eval``; the detector's boxes too: ``--task 2d-detection``);
+4. a short training run of each network from its ImageNet start (:attr:`DemoConfig.short_minutes`,
+   ``loop.val_at_start``): the detector on both cores, then coarse and refiner side by side; the
+   loss falls and the held-out error moves (``OUT/demo_training.png``, a table);
+5. print the AR table (also ``OUT/demo_summary.md``, ``OUT/demo_ar.png``) and the training table.
+
+With ``train=True`` (``cosy-lite demo --train``, ``make train``; datasets without reference
+models) step 4 is the demo profile's full from-scratch training instead (the whole dataset is
+generated; detector, then refiner on both cores, :attr:`DemoConfig.train_minutes`; with
+``start="coarse"`` the coarse network beside the refiner) and step 2 uses those networks.
 """
 
 from __future__ import annotations
@@ -32,6 +36,17 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 MODELS = ("detector", "coarse", "refiner")
 METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_mspd"}  # column -> scores.json key
+MSSD_RECALL = "MSSD recall 0.1 d"
+# short runs: model -> (held-out key of its log, what it is); validation at start, every few steps, at the end
+SHORT_VAL = {"detector": ("val/ap50", "validation AP50"),
+             "coarse": ("val/iter1/rot_err_deg_median", "validation rotation error after 1 iteration (deg)"),
+             "refiner": ("val/iter1/rot_err_deg_median", "validation rotation error after 1 iteration (deg)")}
+# short warm-up (the profiles' 50-200 steps would take the whole run), validation only before and
+# after (val_every beyond the run's steps: a validation of the refiner costs ~20 s on one core)
+SHORT_OVERRIDES = {"detector": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10"],
+                   "coarse": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10", "data.val_instances=32"],
+                   "refiner": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10", "data.val_instances=32",
+                               "val_iterations=1"]}
 
 
 @dataclass
@@ -51,36 +66,68 @@ class DemoConfig:
     data_root: Path = REPO / "data"
     runs: Path = REPO / "runs" / "demo"
     out: Path = REPO / "outputs"
-    # detector: its profile's 1200 steps would take 17.5-21 min on the 2-core machine (0.95-1.15 steps/s
-    # with 2 DDP processes), so the budget, a cap, ends it first (1026 steps in 18 min: validation
+    train: bool = False  # train the networks from scratch instead of using the reference models
+    pretrained: str | None = None  # reference models (default: the dataset's, when shipped)
+    # train=True: the detector's profile's 1200 steps would take 17.5-21 min on the 2-core machine (0.95-1.15
+    # steps/s with 2 DDP processes), so the budget, a cap, ends it first (1026 steps in 18 min: validation
     # AP50 0.57); then the refiner, also on both cores (start="coarse": coarse and refiner side by side,
-    # one core each). 16 + 9.5 min keep make demo within its 45 minutes from a clean clone (measured
-    # 42 min: setup + generation ~8, detector 16.4, refiner 10.4, inference 6.9, evaluation 0.6)
+    # one core each). Measured 42 min from a clean clone: setup + generation ~8, detector 16.4, refiner
+    # 10.4, inference 6.9, evaluation 0.6
     train_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 16.0, "coarse": 9.5, "refiner": 9.5})
+    # the short runs that show each network learning (reference-model mode)
+    short_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 1.0, "coarse": 1.0, "refiner": 1.0})
+    short_train_images: int = 100  # train_pbr images generated for them when the dataset is absent
     n_refiner_iters: int = 4
     start: str = "templates"  # infer.py --start: "templates" (no coarse network) or "coarse"
     n_candidates: int = 5  # infer.py --candidates (start="templates")
     vis: int = 4
     threads: int = 2
 
+    @property
+    def reference(self) -> str | None:
+        """The reference models the demo infers with (None: it trains its own)."""
+        from cosy_lite.reference.catalog import reference_names
+
+        if self.train:
+            return None
+        name = self.pretrained or self.dataset
+        return name if (self.pretrained or name in reference_names()) else None
+
 
 def trained_models(cfg: DemoConfig) -> tuple[str, ...]:
-    """The models the demo trains: no coarse network when the poses start from templates."""
-    return MODELS if cfg.start == "coarse" else tuple(m for m in MODELS if m != "coarse")
+    """The models the demo trains: all three in its short runs; from scratch, no coarse network when
+    the poses start from templates."""
+    if cfg.reference is not None or cfg.start == "coarse":
+        return MODELS
+    return tuple(m for m in MODELS if m != "coarse")
+
+
+def model_args(cfg: DemoConfig) -> list[str]:
+    """infer.py's networks and start: the reference models, or the demo's trained checkpoints."""
+    if cfg.reference is not None:
+        return ["--pretrained", cfg.reference, "--templates-cache", str(cfg.runs / "templates")]
+    start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
+             else ["--start", "templates", "--candidates", str(cfg.n_candidates),
+                   "--templates-cache", str(cfg.runs / "templates")])
+    return start + ["--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"),
+                    "--n-refiner-iters", str(cfg.n_refiner_iters)]
 
 
 def infer_runs(cfg: DemoConfig) -> list[InferRun]:
-    det = ["--detector", str(cfg.runs / "detector" / "checkpoint.pt")]
-    start = "coarse" if cfg.start == "coarse" else f"templates (top {cfg.n_candidates})"
-    masks = "GT boxes + masks" if cfg.start == "templates" else "GT boxes"
+    det = [] if cfg.reference is not None else ["--detector", str(cfg.runs / "detector" / "checkpoint.pt")]
+    if cfg.reference is not None:
+        start, masks = "templates + refiner", "GT boxes + masks"
+    else:
+        start = ("coarse" if cfg.start == "coarse" else f"templates (top {cfg.n_candidates})") + " + refiner"
+        masks = "GT boxes + masks" if cfg.start == "templates" else "GT boxes"
     # each ICP run also writes its poses before ICP: the RGB-only results at no extra cost
     return [
-        InferRun("cosyliteicp", f"detector + {start} + refiner + depth ICP",
+        InferRun("cosyliteicp", f"detector + {start} + depth ICP",
                  det + ["--icp", "--vis", str(cfg.vis), "--also-before-icp", "cosylite"],
-                 ("cosylite", f"detector + {start} + refiner (RGB)")),
-        InferRun("cosyliteoracleicp", f"{masks} (oracle) + {start} + refiner + depth ICP",
+                 ("cosylite", f"detector + {start} (RGB)")),
+        InferRun("cosyliteoracleicp", f"{masks} (oracle) + {start} + depth ICP",
                  ["--detections", "oracle", "--icp", "--also-before-icp", "cosyliteoracle"],
-                 ("cosyliteoracle", f"{masks} (oracle) + {start} + refiner (RGB)")),
+                 ("cosyliteoracle", f"{masks} (oracle) + {start} (RGB)")),
     ]
 
 
@@ -111,27 +158,62 @@ def _py(*args: str) -> list[str]:
     return [sys.executable, *args]
 
 
+def _train_images(root: Path) -> int:
+    """Images of the generated ``train_pbr`` scenes (0 without any)."""
+    return sum(len(json.loads(p.read_text())) for p in root.glob("train_pbr/*/scene_gt_info.json"))
+
+
+def _full_train_images(synth_cfg: Path) -> int:
+    from cosy_lite.config import load_config
+    from cosy_lite.synth.generator import SynthConfig
+
+    return load_config(SynthConfig, synth_cfg if synth_cfg.is_file() else None).split_config("train_pbr").n_images
+
+
 def prepare_dataset(cfg: DemoConfig) -> Path:
+    """Generate what is missing (the test split; ``train_pbr``: all of it when training from scratch, else
+    :attr:`DemoConfig.short_train_images` images, enough for the short runs) and validate the dataset."""
     root = cfg.data_root / cfg.dataset
-    if not (root / "test_targets_bop19.json").is_file():
-        synth_cfg = REPO / "configs" / "synth" / f"{cfg.dataset}.yaml"
-        extra = ["--config", str(synth_cfg)] if synth_cfg.is_file() else []
-        _run(_py("-m", "cosy_lite.cli", "generate", "--out", str(root), "--workers", "2", *extra), "generate the dataset")
+    synth_cfg = REPO / "configs" / "synth" / f"{cfg.dataset}.yaml"
+    extra = ["--config", str(synth_cfg)] if synth_cfg.is_file() else []
+    generate = _py("-m", "cosy_lite.cli", "generate", "--out", str(root), "--workers", "2", *extra)
+    has_test = (root / "test_targets_bop19.json").is_file()
+    n_train = _train_images(root)
+    if cfg.reference is None and not (has_test and n_train >= _full_train_images(synth_cfg)):
+        _run(generate, "generate the dataset")
+    elif not has_test or not n_train:
+        splits = (["test"] if not has_test else []) + (["train_pbr"] if not n_train else [])
+        _run(generate + [f"train.n_images={cfg.short_train_images}", "--splits", *splits],
+             f"generate the dataset ({', '.join(splits)}; train_pbr: {cfg.short_train_images} images for the short runs)")
     _run(_py("-m", "cosy_lite.cli", "check-dataset", str(root)), "validate the dataset")
+    pictures = {"show": (cfg.out / "demo_show_test_000000_000000.png", ["--split", "test", "--scene", "0", "--image", "0"]),
+                "contact-sheet": (cfg.out / "demo_contact_sheet.png", ["--split", "train_pbr", "-n", "16"])}
+    for command, (png, args) in pictures.items():
+        if not png.is_file():
+            _run(_py("-m", "cosy_lite.cli", command, str(root), *args, "--out", str(png)),
+                 f"{command}: GT contours over the data ({png.name})")
     return root
 
 
-def train_command(cfg: DemoConfig, root: Path, model: str) -> list[str]:
-    """``train.py`` for ``model`` with the demo profile and budget; the detector as two single-threaded
-    DDP processes (torchrun), which train 1.9x faster than one two-threaded process on 2 cores."""
-    run_dir = cfg.runs / model
+def short_runs(cfg: DemoConfig) -> Path:
+    return cfg.runs / "short"
+
+
+def train_command(cfg: DemoConfig, root: Path, model: str, short: bool = False) -> list[str]:
+    """``train.py`` for ``model`` with the demo profile and budget (``short``: the short run's, from its
+    ImageNet start, validated before training too); the detector, and the refiner trained alone,
+    as two single-threaded DDP processes (torchrun), which train 1.9x faster than one two-threaded
+    process on 2 cores."""
+    run_dir = (short_runs(cfg) if short else cfg.runs) / model
     args = ["train.py", "--dataset", str(root), "--model", model, "--profile", "demo", "--out", str(run_dir)]
     if (run_dir / "checkpoint.pt").is_file():
         args.append("--resume")
-    args.append(f"loop.max_minutes={cfg.train_minutes[model]}")
+    args.append(f"loop.max_minutes={(cfg.short_minutes if short else cfg.train_minutes)[model]}")
+    if short:
+        args += ["loop.val_at_start=true", "loop.log_every=5", *SHORT_OVERRIDES[model]]
     if model == "detector" or (model == "refiner" and "coarse" not in trained_models(cfg)):
         return _py("-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", *args, "loop.num_workers=0")
-    return _py(*args)
+    return _py(*args, "loop.num_workers=0") if short else _py(*args)
 
 
 def _run_parallel(cmds: list[list[str]], whats: list[str], logs: list[Path]) -> None:
@@ -181,10 +263,72 @@ def train_models(cfg: DemoConfig, root: Path) -> None:
             _mark_done(cfg, m)
 
 
-def _mark_done(cfg: DemoConfig, model: str) -> None:
-    run_dir = cfg.runs / model
+def _mark_done(cfg: DemoConfig, model: str, short: bool = False) -> None:
+    run_dir = (short_runs(cfg) if short else cfg.runs) / model
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "DONE").write_text("trained by cosy-lite demo\n")
+
+
+def short_training(cfg: DemoConfig, root: Path) -> dict[str, dict]:
+    """The short run of each network (detector on both cores, then coarse and refiner side by side);
+    returns model -> its log's train and validation records."""
+    runs = short_runs(cfg)
+    todo = [m for m in MODELS if not (runs / m / "DONE").is_file()]
+    if "detector" in todo:
+        _run(train_command(cfg, root, "detector", short=True),
+             f"short run: detector ({cfg.short_minutes['detector']:g} min)", env={"OMP_NUM_THREADS": "1"})
+        _mark_done(cfg, "detector", short=True)
+    pose = [m for m in todo if m != "detector"]
+    if pose:
+        _run_parallel([train_command(cfg, root, m, short=True) for m in pose],
+                      [f"short run: {m} ({cfg.short_minutes[m]:g} min)" for m in pose],
+                      [runs / f"{m}.log" for m in pose])
+        for m in pose:
+            _mark_done(cfg, m, short=True)
+    from cosy_lite.train.loop import read_log
+
+    logs = {}
+    for m in MODELS:
+        records = read_log(runs / m / "log.jsonl")
+        logs[m] = {"train": [r for r in records if r.get("type") == "train"],
+                   "val": [r for r in records if r.get("type") == "val" and SHORT_VAL[m][0] in r]}
+    return logs
+
+
+def training_table(logs: dict[str, dict]) -> str:
+    """Per short run: steps, training loss at its first and last log, held-out metric before and after."""
+    lines = ["| network | steps | loss first -> last | held-out metric | before -> after |", "| --- | ---: | --- | --- | --- |"]
+    for m, log in logs.items():
+        key, what = SHORT_VAL[m]
+        tr, va = log["train"], log["val"]
+        loss = f"{tr[0]['loss/total']:.3f} -> {tr[-1]['loss/total']:.3f}" if tr else "-"
+        val = f"{va[0][key]:.3f} (step {va[0]['step']}) -> {va[-1][key]:.3f} (step {va[-1]['step']})" if va else "-"
+        lines.append(f"| {m} | {tr[-1]['step'] if tr else 0} | {loss} | {what} | {val} |")
+    return "\n".join(lines)
+
+
+def plot_training(logs: dict[str, dict], path: Path) -> None:
+    """One panel per short run: training loss per step, the held-out metric on a second axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(logs), figsize=(4.2 * len(logs), 3.4))
+    for ax, (m, log) in zip(axes, logs.items()):
+        key, what = SHORT_VAL[m]
+        ax.plot([r["step"] for r in log["train"]], [r["loss/total"] for r in log["train"]], ".-", color="tab:blue")
+        ax.ticklabel_format(axis="y", useOffset=False)
+        ax.set(title=m, xlabel="step", ylabel="training loss")
+        ax.yaxis.label.set_color("tab:blue")
+        right = ax.twinx()
+        right.plot([r["step"] for r in log["val"]], [r[key] for r in log["val"]], "o-", color="tab:red")
+        right.set_ylabel(what, color="tab:red", fontsize=8)
+        right.ticklabel_format(axis="y", useOffset=False)
+    fig.suptitle("cosy-lite demo: short training runs from the ImageNet start (loss, held-out metric)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
@@ -200,13 +344,9 @@ def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
     cmds, whats = [], []
     for run in todo:
         csv = _csv(cfg, run.method)
-        start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
-                 else ["--start", "templates", "--candidates", str(cfg.n_candidates),
-                       "--templates-cache", str(cfg.runs / "templates")])
-        cmds.append(_py("infer.py", "--dataset", str(root), *start,
-                        "--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"), "--n-refiner-iters",
-                        str(cfg.n_refiner_iters), "--threads", str(threads), "--method", run.method,
-                        "--out", str(csv.parent), *(["--no-progress"] if len(todo) > 1 else []), *run.args))
+        cmds.append(_py("infer.py", "--dataset", str(root), *model_args(cfg), "--threads", str(threads),
+                        "--method", run.method, "--out", str(csv.parent),
+                        *(["--no-progress"] if len(todo) > 1 else []), *run.args))
         whats.append(f"infer: {run.label}" + (f" (and {run.before_icp[1]})" if run.before_icp else ""))
     if len(cmds) == 1:
         _run(cmds[0], whats[0])
@@ -223,18 +363,35 @@ def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
     return results
 
 
+def detector_scores(cfg: DemoConfig, root: Path) -> dict | None:
+    """COCO box AP of the detector run's detections on the test split (``cosy-lite eval --task
+    2d-detection``, boxes of the visible part, as the detector is trained), None without them."""
+    dets = _csv(cfg, infer_runs(cfg)[0].method).with_suffix(".json")
+    out = dets.parent / f"{dets.stem}_eval"
+    scores = out / "scores_bop22_coco_bbox_modal.json"
+    if not dets.is_file():
+        return None
+    if not scores.is_file():
+        _run(_py("-m", "cosy_lite.cli", "eval", "--dataset", str(root), "--results", str(dets), "--task", "2d-detection",
+                 "--bbox-type", "modal", "--out", str(out)), "evaluate: the detector's boxes")
+    return json.loads(scores.read_text())
+
+
 def _metric(scores: dict, column: str) -> float:
+    if column == MSSD_RECALL:  # recall at the second MSSD threshold, 0.1 x the diameter
+        return float(scores["recall_mssd"][scores["thresholds"]["mssd_x_diameter"].index(0.1)])
     return float(scores[METRICS[column]])
 
 
 def summary_table(results: list[tuple[InferRun, dict]]) -> str:
-    lines = ["| pipeline | " + " | ".join(METRICS) + " |", "| --- |" + " --- |" * len(METRICS)]
+    columns = [*METRICS, MSSD_RECALL]
+    lines = ["| pipeline | " + " | ".join(columns) + " |", "| --- |" + " --- |" * len(columns)]
     for run, scores in results:
-        lines.append(f"| {run.label} | " + " | ".join(f"{_metric(scores, m):.3f}" for m in METRICS) + " |")
+        lines.append(f"| {run.label} | " + " | ".join(f"{_metric(scores, m):.3f}" for m in columns) + " |")
     return "\n".join(lines)
 
 
-def plot_summary(results: list[tuple[InferRun, dict]], path: Path) -> None:
+def plot_summary(results: list[tuple[InferRun, dict]], path: Path, title: str = "") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -250,7 +407,7 @@ def plot_summary(results: list[tuple[InferRun, dict]], path: Path) -> None:
     ax.set_ylim(0, 1)
     ax.set_ylabel("recall")
     ax.legend(fontsize=7)
-    ax.set_title("cosy-lite demo: test split, demo-profile models trained on the CPU")
+    ax.set_title(title or "cosy-lite demo: test split")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -260,14 +417,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", default=DemoConfig.dataset, help="synthetic dataset name (generated if absent)")
     p.add_argument("--data-root", type=Path, default=DemoConfig.data_root)
     p.add_argument("--runs", type=Path, default=DemoConfig.runs, help="run folders of the three models")
-    p.add_argument("--out", type=Path, default=DemoConfig.out, help="CSVs, scores, overlays, summary")
+    p.add_argument("--out", type=Path, default=DemoConfig.out,
+                   help="CSVs, scores, overlays, summary (default outputs/; --train: outputs/train/)")
+    p.add_argument("--train", action="store_true",
+                   help="train the networks from scratch (demo profiles, ~40 min) instead of inferring with the shipped "
+                        "reference models (the default for datasets that have them)")
+    p.add_argument("--pretrained", default=None, metavar="NAME",
+                   help="reference models to infer with (default: the dataset's, when shipped)")
     p.add_argument("--minutes", type=float, nargs=3, metavar=("DET", "COARSE", "REF"), default=None,
-                   help="training budget per model (default 16 9.5 9.5)")
+                   help="training budget per model (--train: default 16 9.5 9.5; else the short runs: 1 1 1)")
     p.add_argument("--start", choices=["templates", "coarse"], default=DemoConfig.start,
-                   help="start poses: silhouette templates (default; the coarse network is not trained) or the "
-                        "trained coarse network (CosyPose)")
+                   help="--train: start poses from silhouette templates (default; the coarse network is not trained) "
+                        "or the trained coarse network (CosyPose)")
     p.add_argument("--candidates", type=int, default=DemoConfig.n_candidates, metavar="K",
-                   help=f"--start templates: templates tried per detection (default {DemoConfig.n_candidates})")
+                   help=f"--train --start templates: templates tried per detection (default {DemoConfig.n_candidates})")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -275,23 +438,38 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from cosy_lite.bop.params import RENAMED_DATASETS, renamed_dataset_message
     from cosy_lite.errors import BopFormatError
+    from cosy_lite.reference.catalog import reference_models
 
     if args.dataset in RENAMED_DATASETS:
         raise BopFormatError(args.data_root / args.dataset, "--dataset", renamed_dataset_message(args.dataset)
                              + f": use --dataset {RENAMED_DATASETS[args.dataset]}")
-    cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=args.out,
-                     start=args.start, n_candidates=args.candidates)
+    out = args.out / "train" if args.train and args.out == DemoConfig.out else args.out  # apart from the reference results
+    cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=out, train=args.train,
+                     pretrained=args.pretrained, start=args.start, n_candidates=args.candidates)
+    if cfg.reference is not None:
+        reference_models(cfg.reference)  # an unknown --pretrained name fails here, before any work
     if args.minutes:
-        cfg.train_minutes = dict(zip(MODELS, args.minutes))
+        setattr(cfg, "train_minutes" if cfg.reference is None else "short_minutes", dict(zip(MODELS, args.minutes)))
     t0 = time.perf_counter()
     root = prepare_dataset(cfg)
-    train_models(cfg, root)
+    if cfg.reference is None:
+        train_models(cfg, root)
     results = infer_and_eval(cfg, root)
+    det = detector_scores(cfg, root)
+    logs = short_training(cfg, root) if cfg.reference is not None else None
     cfg.out.mkdir(parents=True, exist_ok=True)
+    where = (f"reference models {cfg.reference!r}" if cfg.reference is not None
+             else "demo-profile models trained on the CPU")
     table = summary_table(results)
-    plot_summary(results, cfg.out / "demo_ar.png")
-    (cfg.out / "demo_summary.md").write_text(table + "\n")
-    print("\n" + table)
+    lines = [f"Test split of {cfg.dataset}, {where}:", "", table]
+    if det is not None:
+        lines += ["", f"Detector boxes (visible part), COCO AP50 {det['AP50']:.3f}, AP {det['AP']:.3f}"]
+    if logs is not None:
+        plot_training(logs, cfg.out / "demo_training.png")
+        lines += ["", "Short training runs (from the ImageNet start; plot: demo_training.png):", "", training_table(logs)]
+    plot_summary(results, cfg.out / "demo_ar.png", f"cosy-lite demo: test split, {where}")
+    (cfg.out / "demo_summary.md").write_text("\n".join(lines) + "\n")
+    print("\n" + "\n".join(lines))
     print(f"\noverlays (estimates over the test images, GT in another colour): {cfg.out / 'results' / 'vis'}")
     print(f"AR plot: {cfg.out / 'demo_ar.png'}; recall curves: {cfg.out / 'results'}/*_eval/recall_curves.png")
     print(f"demo wall time: {(time.perf_counter() - t0) / 60:.1f} min")

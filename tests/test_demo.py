@@ -22,8 +22,9 @@ def recorded(monkeypatch):
     return calls
 
 
-def _cfg(tmp_path: Path, start: str = "templates") -> demo.DemoConfig:
-    return demo.DemoConfig(data_root=tmp_path / "data", runs=tmp_path / "runs", out=tmp_path / "out", start=start)
+def _cfg(tmp_path: Path, start: str = "templates", train: bool = True) -> demo.DemoConfig:
+    return demo.DemoConfig(data_root=tmp_path / "data", runs=tmp_path / "runs", out=tmp_path / "out", start=start,
+                           train=train)
 
 
 def test_with_templates_the_detector_and_the_refiner_train_on_both_cores(tmp_path, recorded, monkeypatch):
@@ -60,20 +61,46 @@ def test_training_runs_each_model_once_with_its_budget_and_resumes_unfinished_ru
     assert (cfg.runs / "detector" / "DONE").is_file() and (cfg.runs / "coarse" / "DONE").is_file()
 
 
+def _fake_dataset(root: Path, n_train: int) -> None:
+    (root / "train_pbr" / "000000").mkdir(parents=True)
+    (root / "train_pbr" / "000000" / "scene_gt_info.json").write_text(json.dumps({str(i): [] for i in range(n_train)}))
+    (root / "test_targets_bop19.json").write_text("[]")
+
+
 def test_generation_is_skipped_when_the_dataset_is_complete(tmp_path, recorded):
     cfg = _cfg(tmp_path)
     root = cfg.data_root / cfg.dataset
     demo.prepare_dataset(cfg)
     assert recorded[0][recorded[0].index("generate") + 2] == str(root)  # generate --out ROOT
+    assert "--splits" not in recorded[0]  # training from scratch: the whole dataset
     recorded.clear()
-    root.mkdir(parents=True)
-    (root / "test_targets_bop19.json").write_text("[]")
+    _fake_dataset(root, 1000)
     demo.prepare_dataset(cfg)
-    assert len(recorded) == 1 and "check-dataset" in recorded[0]
+    assert not any("generate" in c for c in recorded) and "check-dataset" in recorded[0]
+    assert [c[3] for c in recorded[1:]] == ["show", "contact-sheet"]  # GT contours over a test and training images
+
+
+def test_with_reference_models_only_the_test_split_and_a_few_training_images_are_generated(tmp_path, recorded):
+    cfg = _cfg(tmp_path, train=False)
+    assert cfg.reference == "ycbvsynth"
+    root = cfg.data_root / cfg.dataset
+    demo.prepare_dataset(cfg)
+    gen = recorded[0]
+    assert gen[gen.index("--splits") + 1:gen.index("--splits") + 3] == ["test", "train_pbr"]
+    assert f"train.n_images={cfg.short_train_images}" in gen
+    recorded.clear()
+    _fake_dataset(root, cfg.short_train_images)
+    demo.prepare_dataset(cfg)  # enough for the short runs
+    assert not any("generate" in c for c in recorded) and "check-dataset" in recorded[0]
+    recorded.clear()
+    demo.prepare_dataset(_cfg(tmp_path, train=True))  # 100 images are not enough to train from scratch
+    assert "generate" in recorded[0] and "--splits" not in recorded[0]
 
 
 def _scores(ar: float) -> dict:
-    return {"ar": ar, "ar_vsd": ar + 0.1, "ar_mssd": ar + 0.2, "ar_mspd": ar + 0.3}
+    thresholds = [0.05 * k for k in range(1, 11)]
+    return {"ar": ar, "ar_vsd": ar + 0.1, "ar_mssd": ar + 0.2, "ar_mspd": ar + 0.3,
+            "thresholds": {"mssd_x_diameter": thresholds}, "recall_mssd": [ar + 0.01 * k for k in range(10)]}
 
 
 def test_infer_and_eval_reads_every_scores_file_and_the_summary_lists_them(tmp_path, recorded):
@@ -90,8 +117,8 @@ def test_infer_and_eval_reads_every_scores_file_and_the_summary_lists_them(tmp_p
     assert any("--icp" in r.args for r, _ in results[1:2]) and "oracle" in results[2][0].args
     assert results[0][0].label.endswith("(RGB)") and results[1][0].label.endswith("depth ICP")
     table = demo.summary_table(results).splitlines()
-    assert table[0] == "| pipeline | AR | AR_VSD | AR_MSSD | AR_MSPD |"
-    assert table[3].endswith("| 0.100 | 0.200 | 0.300 | 0.400 |")  # 2nd run: AR 0.1, VSD 0.2, ...
+    assert table[0] == "| pipeline | AR | AR_VSD | AR_MSSD | AR_MSPD | MSSD recall 0.1 d |"
+    assert table[3].endswith("| 0.100 | 0.200 | 0.300 | 0.400 | 0.110 |")  # 2nd run: AR 0.1, VSD 0.2, ...
     demo.plot_summary(results, tmp_path / "ar.png")
     assert (tmp_path / "ar.png").stat().st_size > 5000
 
@@ -132,3 +159,42 @@ def test_the_two_inference_runs_go_side_by_side_on_one_core_each(tmp_path, monke
     demo.infer_and_eval(cfg, tmp_path / "data")
     kind, cmd = runs[0]
     assert kind == "alone" and "oracle" in cmd and cmd[cmd.index("--threads") + 1] == "2"
+
+
+def test_with_reference_models_inference_uses_them_and_each_network_gets_a_short_run(tmp_path, recorded, monkeypatch):
+    cfg = _cfg(tmp_path, train=False)
+    monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
+    demo.infer_and_eval(cfg, tmp_path / "root")
+    infers = [c for c in recorded if "infer.py" in c]
+    assert len(infers) == 2
+    for cmd in infers:
+        assert cmd[cmd.index("--pretrained") + 1] == "ycbvsynth"
+        assert not {"--coarse", "--refiner", "--detector", "--start"} & set(cmd)  # the set's own settings
+    recorded.clear()
+    monkeypatch.undo()
+    monkeypatch.setattr(demo, "_run", lambda cmd, what, env=None: recorded.append(cmd))
+    monkeypatch.setattr(demo, "_run_parallel", lambda cmds, whats, logs: recorded.extend(cmds))
+    demo.short_training(cfg, tmp_path / "root")
+    assert [c[c.index("--model") + 1] for c in recorded] == ["detector", "coarse", "refiner"]
+    det, coarse, refiner = recorded
+    assert det[1:6] == ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+    assert coarse[1] == "train.py" and refiner[1] == "train.py"  # side by side, one core each
+    for cmd, m in zip(recorded, demo.MODELS):
+        assert "loop.val_at_start=true" in cmd and f"loop.max_minutes={cfg.short_minutes[m]}" in cmd
+        assert cmd[cmd.index("--out") + 1] == str(cfg.runs / "short" / m)  # not the from-scratch runs' folders
+    recorded.clear()
+    demo.short_training(cfg, tmp_path / "root")
+    assert recorded == []  # done: skipped
+
+
+def test_training_table_and_plot_show_the_loss_and_the_held_out_metric(tmp_path):
+    logs = {}
+    for m, (key, _) in demo.SHORT_VAL.items():
+        logs[m] = {"train": [{"step": 5 * i, "loss/total": 2.0 / i} for i in range(1, 5)],
+                   "val": [{"step": 0, key: 0.5}, {"step": 20, key: 0.25}]}
+    table = demo.training_table(logs).splitlines()
+    assert len(table) == 5 and table[2].startswith("| detector | 20 | 2.000 -> 0.500 | validation AP50 |")
+    assert table[2].endswith("| 0.500 (step 0) -> 0.250 (step 20) |")
+    demo.plot_training(logs, tmp_path / "training.png")
+    assert (tmp_path / "training.png").stat().st_size > 10000
