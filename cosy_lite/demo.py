@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parent.parent
 MODELS = ("detector", "coarse", "refiner")
 METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_mspd"}  # column -> scores.json key
 MSSD_RECALL = "MSSD recall 0.1 d"
-# short runs: model -> (held-out key of its log, what it is); validation at start, every few steps, at the end
+# short runs: model -> (held-out key of its log, what it is), validated before and after training
 SHORT_VAL = {"detector": ("val/ap50", "validation AP50"),
              "coarse": ("val/iter1/rot_err_deg_median", "validation rotation error after 1 iteration (deg)"),
              "refiner": ("val/iter1/rot_err_deg_median", "validation rotation error after 1 iteration (deg)")}

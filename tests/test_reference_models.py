@@ -151,6 +151,17 @@ def _pixels_shifted(crop_images):
     return buggy
 
 
+def _pixels_mirrored(crop_images):
+    def buggy(*args, **kwargs):
+        crops = crop_images(*args, **kwargs)  # sampled right to left:
+        if hasattr(crops, "flip"):
+            return crops.flip(-1)
+        crops[...] = crops[..., ::-1].copy()  # in place: the numpy loop reads its out= buffer
+        return crops
+
+    return buggy
+
+
 def _render_cx_plus_2px(crop_intrinsics):
     def buggy(*args, **kwargs):
         K_crop = crop_intrinsics(*args, **kwargs)
@@ -185,6 +196,7 @@ BUGS = {
     "crop_margin_2": (CROPS, _crop_margin(2.0)),
     "crop_centre_10px": (CROPS, _crop_centre_shifted),
     "crop_pixels_4px": ([(render_and_compare, "crop_images"), (iterate_np, "crop_image")], _pixels_shifted),
+    "crop_pixels_mirrored": ([(render_and_compare, "crop_images"), (iterate_np, "crop_image")], _pixels_mirrored),
     "render_cx_2px": (K_CROPS, _render_cx_plus_2px),
     "render_focal_1.1": (K_CROPS, _render_focal_x1_1),
     "flow_update_xy_swapped": ([(flow_pose_solver, "pose_from_flow"), (iterate_np, "pose_from_flow")], _flow_xy_swapped),
@@ -246,7 +258,8 @@ def _scores(predictor: Predictor, root: Path, out: Path, method: str, detections
 # Measured 2026-12-02 on these 4 images (36 targets), torch and onnxruntime alike (to 0.003 AR):
 #   GT masks: AR 0.266, MSSD recall 0.111 (4 of 36); detector: AR 0.201, MSSD recall 0.139 (5 of 36).
 # With a bug injected (COSY_LITE_TEST_BUG, GT masks, torch / onnxruntime):
-#   flow_update_xy_swapped AR 0.045, MSSD 0; render_focal_1.1 AR 0.113 / 0.111, MSSD 0: caught;
+#   flow_update_xy_swapped AR 0.045, MSSD 0; render_focal_1.1 AR 0.113 / 0.111, MSSD 0;
+#   crop_pixels_mirrored AR 0.031, MSSD 0: caught;
 #   crop_margin_1.5 0.242 / 0.083, crop_margin_2 0.231 / 0.083, crop_centre_10px 0.262 / 0.083,
 #   crop_pixels_4px 0.244 / 0.083, render_cx_2px 0.272 / 0.139: not caught here (the refiner absorbs
 #   them); tests/test_oracle_loop.py catches such bugs exactly.
