@@ -76,6 +76,27 @@ def test_unknown_or_broken_sets_name_the_problem(tmp_path):
         reference_models("demo", tmp_path)
 
 
+def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_path):
+    from cosy_lite.reference.catalog import publish
+    from cosy_lite.train.checkpoint import Checkpoint, load_weights, save_checkpoint
+
+    ckpt = Checkpoint(kind="refiner", model={"w": torch.linspace(-1, 1, 12).reshape(3, 4), "n": torch.tensor(7)},
+                      config={"dataset": "toy", "loop": {"batch_size": 8}}, step=42,
+                      train_state={"elapsed_s": 61.25}, meta={"obj_ids": [1, 2], "dataset": "toy"})
+    save_checkpoint(tmp_path / "checkpoint.pt", ckpt)
+    weights, card_path = publish(tmp_path / "checkpoint.pt", tmp_path / "toy", {"training_command": "python train.py"})
+    card = json.loads(card_path.read_text())
+    assert (card["kind"], card["dataset"], card["obj_ids"], card["steps"]) == ("refiner", "toy", [1, 2], 42)
+    assert card["training_seconds"] == 61.2 and card["training_command"] == "python train.py"
+    assert card["weights_bytes"] == weights.stat().st_size
+    back = load_weights(weights)
+    assert back.step == 42 and torch.equal(back.model["w"], ckpt.model["w"].half().float())
+    before = weights.read_bytes()
+    publish(tmp_path / "checkpoint.pt", tmp_path / "toy", {"note": "a card update"})
+    assert weights.read_bytes() == before  # same weights: the file is left as it is (no churn in git)
+    assert json.loads(card_path.read_text())["note"] == "a card update"
+
+
 def test_command_lines_take_the_sets_networks_and_settings_unless_given():
     from argparse import Namespace
 

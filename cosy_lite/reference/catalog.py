@@ -56,10 +56,6 @@ class ReferenceModels:
         """An inference setting of :data:`DEFAULT_PIPELINE` as the set's ``pipeline.json`` gives it."""
         return self.pipeline.get("inference", {}).get(key, DEFAULT_PIPELINE[key])
 
-    def describe(self) -> str:
-        kinds = ", ".join(k for k in KINDS if k in self.weights)
-        return f"reference models {self.name!r} ({kinds}; {self.folder})"
-
 
 def reference_names(root: Path | None = None) -> list[str]:
     """Names of the shipped sets (folders with at least one weights file)."""
@@ -115,6 +111,23 @@ def fill_arguments(args: Any, use_networks: bool = True) -> None:
             setattr(args, key, value)
 
 
+def _same_weights(path: Path, ckpt: Any) -> bool:
+    """Whether the weights file at ``path`` holds ``ckpt``'s step and tensors (as fp16)."""
+    import torch
+
+    from cosy_lite.train.checkpoint import CheckpointError, load_weights
+
+    if not path.is_file():
+        return False
+    try:
+        old = load_weights(path)
+    except CheckpointError:
+        return False
+    half = {k: v.half().float() if v.is_floating_point() else v for k, v in ckpt.model.items()}
+    return (old.step == ckpt.step and old.kind == ckpt.kind and old.model.keys() == half.keys()
+            and all(torch.equal(old.model[k], half[k]) for k in half))
+
+
 def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) -> tuple[Path, Path]:
     """Write the network of a training ``checkpoint`` into the set ``folder`` as fp16
     ``KIND.safetensors`` and its card ``KIND.json``: ``card`` (command, machine, metrics ...) plus
@@ -126,7 +139,8 @@ def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) ->
         raise ReferenceModelError(f"{checkpoint}: kind {ckpt.kind!r} is not one of {KINDS}")
     folder = Path(folder)
     weights = folder / f"{ckpt.kind}.safetensors"
-    save_weights(weights, ckpt)
+    if not _same_weights(weights, ckpt):  # (a card update leaves the weights file as it is)
+        save_weights(weights, ckpt)
     known = {"kind": ckpt.kind, "dataset": ckpt.meta.get("dataset", ckpt.config.get("dataset")),
              "obj_ids": ckpt.meta.get("obj_ids") or ckpt.meta.get("label_map", {}).get("obj_ids"),
              "steps": ckpt.step, "training_seconds": round(float(ckpt.train_state.get("elapsed_s", 0.0)), 1),
