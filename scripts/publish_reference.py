@@ -5,7 +5,7 @@
 
 The card gets what the checkpoint knows (kind, dataset, object ids, steps, config, training seconds)
 plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
-given (merged under "metrics"). Folder: cosy_lite/reference/NAME/ (cosy_lite.reference.catalog).
+given (merged under "metrics"). Folder: cosy_lite/reference/NAME/ (cosy_lite.inference.reference_models).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cosy_lite.reference.catalog import publish, reference_root
+    from cosy_lite.inference.reference_models import publish, reference_root
     from cosy_lite.train.checkpoint import load_checkpoint
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -25,7 +25,7 @@ import torch
 from cosy_lite.inference.predictor import Predictor
 from cosy_lite.inference import iterate_np
 from cosy_lite.models import flow_pose_solver, flow_pose_solver_np, render_and_compare
-from cosy_lite.reference.catalog import (ReferenceModelError, fill_arguments, reference_models, reference_names,
+from cosy_lite.inference.reference_models import (ReferenceModelError, fill_arguments, reference_models, reference_names,
                                          reference_root)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,7 +77,7 @@ def test_unknown_or_broken_sets_name_the_problem(tmp_path):
 
 
 def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_path):
-    from cosy_lite.reference.catalog import publish
+    from cosy_lite.inference.reference_models import publish
     from cosy_lite.train.checkpoint import Checkpoint, load_weights, save_checkpoint
 
     ckpt = Checkpoint(kind="refiner", model={"w": torch.linspace(-1, 1, 12).reshape(3, 4), "n": torch.tensor(7)},

@@ -1,6 +1,6 @@
 """Reference models: trained networks shipped inside the package, one folder per dataset.
 
-``cosy_lite/reference/NAME/`` holds, for the dataset NAME (e.g. ``ycbvsynth``), each trained network
+The package data folder ``cosy_lite/reference/NAME/`` (found from this file, so it works installed) holds, for the dataset NAME (e.g. ``ycbvsynth``), each trained network
 as ``KIND.safetensors`` (fp16 weights + the training config and metadata as JSON,
 :func:`~cosy_lite.train.checkpoint.save_weights`: loading runs no code) with its card ``KIND.json``
 (dataset, object ids, exact training command, steps, crops seen, wall time, machine, held-out
@@ -29,8 +29,8 @@ _NAME = re.compile(r"^[A-Za-z0-9]+$")  # a BOP dataset name: no '_' or '-'
 
 
 def reference_root() -> Path:
-    """The folder of the shipped sets (inside the installed package)."""
-    return Path(__file__).resolve().parent
+    """The folder of the shipped sets (``cosy_lite/reference/``, inside the installed package)."""
+    return Path(__file__).resolve().parents[1] / "reference"
 
 
 class ReferenceModelError(CosyLiteError):
