@@ -126,3 +126,20 @@ def test_inference_renders_as_the_checkpoint_was_trained(tmp_path, stored, expec
     save_checkpoint(path, Checkpoint(kind="refiner", model=build_pose_net(cfg).state_dict(), config={}, step=1,
                                      meta={"net": net_meta, "obj_ids": [1, 2]}))
     assert load_pose_model(path, "refiner").render_shading == expected
+
+
+def test_every_parameter_gets_a_gradient_and_older_checkpoints_still_load():
+    # DDP stops at an unused parameter: the trunk's blocks after its last feature level are gone
+    import timm
+
+    net = SiamesePoseNet(pretrained=False, corr_radius=2, width=16, crop_resolution=(96, 128), flat_channels=8)
+    net(torch.rand(2, 6, 96, 128)).sum().backward()
+    assert [n for n, p in net.named_parameters() if p.grad is None] == []
+    assert len(net.trunk.blocks) == 5  # stride 16 is block 4 of EfficientNet-Lite0
+    full = timm.create_model("efficientnet_lite0", features_only=True, out_indices=(2, 3)).state_dict()
+    removed = {f"trunk.{k}": v for k, v in full.items() if k.startswith(("blocks.5.", "blocks.6."))}
+    assert removed  # a checkpoint written before carries them
+    state = {k: v.clone() for k, v in net.state_dict().items()}
+    fresh = SiamesePoseNet(pretrained=False, corr_radius=2, width=16, crop_resolution=(96, 128), flat_channels=8)
+    fresh.load_state_dict({**state, **removed})
+    assert all(torch.equal(fresh.state_dict()[k], v) for k, v in state.items())

@@ -85,10 +85,6 @@ class FlowPoseNet(nn.Module):
         self.in_channels = 6
         self.radius = int(radius)
         self.trunk = lite_features(trunk, TRUNK_LEVELS, pretrained=pretrained and load_weights)
-        # timm keeps (and runs) the stride-32 blocks after the last feature level: dropped, so that every
-        # parameter gets a gradient (DDP requires it) and the forward pass skips ~10 % of its work
-        last = max(int(name.split(".")[1]) for name in self.trunk.feature_info.module_name())
-        del self.trunk.blocks[last + 1:]
         c8, c16 = self.trunk.feature_info.channels()
         self.descriptor = nn.Sequential(_conv_bn_relu(c8 + c16, 2 * descriptor), _conv_bn_relu(2 * descriptor, descriptor),
                                         nn.Conv2d(descriptor, descriptor, 1))

@@ -97,12 +97,17 @@ def lite_classifier(name: str = "efficientnet_lite0") -> nn.Module:
 
 def lite_features(name: str, out_indices: Sequence[int], pretrained: bool = True) -> nn.Module:
     """timm ``features_only`` EfficientNet-Lite returning the feature maps of ``out_indices``
-    (0..4: strides 2, 4, 8, 16, 32), ImageNet weights loaded when ``pretrained``."""
+    (0..4: strides 2, 4, 8, 16, 32; its blocks after the last of them removed), ImageNet weights
+    loaded when ``pretrained``."""
     import timm
 
     if name not in WEIGHTS:
         raise ValueError(f"trunk {name!r} unknown; available: {sorted(WEIGHTS)}")
     net = timm.create_model(name, pretrained=False, features_only=True, out_indices=tuple(out_indices))
+    # timm keeps (and runs) the blocks after the last feature level: dropped, so that every parameter
+    # gets a gradient (DDP requires it) and the forward pass skips their work
+    last = max(int(module.split(".")[1]) for module in net.feature_info.module_name() if module.startswith("blocks."))
+    del net.blocks[last + 1:]
     if pretrained:
         full = timm_state_dict(name)
         own = net.state_dict()

@@ -61,6 +61,14 @@ def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
 
 
+def _drop_removed_trunk_blocks(module: nn.Module, state_dict: dict, prefix: str, *args) -> None:
+    """Load hook: checkpoints written before the trunk lost its unused last blocks (2026-12-02) still
+    carry their weights; they are left out."""
+    head, kept = prefix + "trunk.blocks.", len(module.trunk.blocks)
+    for key in [k for k in state_dict if k.startswith(head) and int(k[len(head):].split(".")[0]) >= kept]:
+        del state_dict[key]
+
+
 class SiamesePoseNet(nn.Module):
     """Pretrained siamese trunk + correlation + soft-argmax pooling + zero-initialised head.
 
@@ -84,6 +92,7 @@ class SiamesePoseNet(nn.Module):
 
         self.in_channels = 6
         self.trunk = lite_features(trunk, TRUNK_LEVELS, pretrained=pretrained and load_weights)
+        self.register_load_state_dict_pre_hook(_drop_removed_trunk_blocks)
         c8, c16 = self.trunk.feature_info.channels()
         self.corr_radius = int(corr_radius)
         n_corr = (2 * self.corr_radius + 1) ** 2 if self.corr_radius > 0 else 0
