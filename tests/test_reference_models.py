@@ -103,7 +103,10 @@ def test_command_lines_take_the_sets_networks_and_settings_unless_given():
     args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=Path("mine.pt"), start=None, candidates=None)
     fill_arguments(args)
     assert args.detector == reference_models(NAME).path("detector") and args.refiner == Path("mine.pt")
-    assert (args.start, args.candidates, args.coarse) == ("templates", 5, None)
+    assert (args.start, args.candidates, args.coarse) == ("templates", 5, None)  # no coarse net to load
+    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, start="coarse", candidates=None)
+    fill_arguments(args)  # the set's candidate count belongs to its templates start
+    assert (args.candidates, args.coarse) == (1, reference_models(NAME).path("coarse"))  # (None: the set has none)
     args = Namespace(pretrained=None, detector=None, coarse=None, refiner=None, start=None, candidates=None)
     fill_arguments(args)
     assert (args.start, args.candidates, args.detector) == ("coarse", 1, None)  # the defaults without a set

@@ -497,7 +497,7 @@ class Predictor:
         if n_refiner_iterations is None:
             n_refiner_iterations = ref.setting("n_refiner_iterations")
         return cls.from_checkpoints(
-            detector=ref.path("detector") if detector else None, coarse=ref.path("coarse"),
+            detector=ref.path("detector") if detector else None, coarse=ref.path("coarse") if start == "coarse" else None,
             refiner=ref.path("refiner"), models_dir=models_dir, dataset=dataset, device=device,
             n_refiner_iterations=n_refiner_iterations, icp=icp, icp_config=icp_config, obj_ids=obj_ids,
             precision=precision, start=start, n_candidates=n_candidates, templates_cache=templates_cache)

@@ -92,23 +92,25 @@ def reference_models(name: str, root: Path | None = None) -> ReferenceModels:
 
 
 def fill_arguments(args: Any, use_networks: bool = True) -> None:
-    """Complete a command line's namespace from its ``--pretrained NAME`` (``args.pretrained``): the
-    set's networks where ``args.detector`` / ``.coarse`` / ``.refiner`` are None (``use_networks``
-    False: left as they are, for a backend that does not take them), and, where the namespace has
-    them and they are None, ``args.start`` / ``args.candidates`` (the set's settings, else the
-    defaults of :data:`DEFAULT_PIPELINE`). Raises ReferenceModelError for an unknown name."""
+    """Complete a command line's namespace from its ``--pretrained NAME`` (``args.pretrained``): where
+    the namespace has them and they are None, ``args.start`` / ``args.candidates`` (the set's
+    settings, else the defaults of :data:`DEFAULT_PIPELINE`); then the set's networks where
+    ``args.detector`` / ``.refiner`` are None, and ``.coarse`` when the poses start from it
+    (``use_networks`` False: networks left as they are, for a backend that does not take them).
+    Raises ReferenceModelError for an unknown name."""
     settings = {"start": DEFAULT_PIPELINE["start"], "candidates": DEFAULT_PIPELINE["n_candidates"]}
-    if getattr(args, "pretrained", None) is not None and use_networks:
-        ref = reference_models(args.pretrained)
-        for kind in KINDS:
-            if getattr(args, kind) is None:
-                setattr(args, kind, ref.path(kind))
+    ref = reference_models(args.pretrained) if getattr(args, "pretrained", None) is not None and use_networks else None
+    if ref is not None:
         settings = {"start": ref.setting("start"), "candidates": ref.setting("n_candidates")}
         if getattr(args, "start", None) not in (None, settings["start"]):
             settings["candidates"] = 1  # the set's candidate count belongs to its own start
     for key, value in settings.items():
         if hasattr(args, key) and getattr(args, key) is None:
             setattr(args, key, value)
+    if ref is not None:
+        for kind in KINDS:  # the coarse network only where the poses start from it (export: all)
+            if getattr(args, kind) is None and (kind != "coarse" or getattr(args, "start", "coarse") == "coarse"):
+                setattr(args, kind, ref.path(kind))
 
 
 def _same_weights(path: Path, ckpt: Any) -> bool:
