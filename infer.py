@@ -9,7 +9,7 @@ hand over to :func:`cosy_lite.inference.bop_run.run_on_split` (ViVo targets, CSV
         --coarse runs/ycbvsynth-coarse/checkpoint.pt --refiner runs/ycbvsynth-refiner/checkpoint.pt \\
         --out results/ --vis 8
     python infer.py --dataset ycbvsynth --pretrained ycbvsynth --out results/   # the shipped reference models
-    python infer.py --dataset ycbvsynth --backend onnx --models models/ --threads 2 --out results/
+    python infer.py --dataset ycbvsynth --backend onnx --models onnx/ --threads 2 --out results/
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "or 6d-detection (BOP 2024/2025: every detection, at most 100 per image, of the images "
                          "of test_targets_bop24.json)")
     ap.add_argument("--pretrained", default=None, metavar="NAME",
-                    help="the shipped reference models NAME (e.g. ycbvsynth: cosy_lite/reference/NAME/) with their "
+                    help="the reference models NAME (e.g. ycbvsynth: models/NAME/) with their "
                          "inference settings; --detector/--coarse/--refiner/--start/--candidates given as well win")
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")

@@ -5,7 +5,7 @@
 
 The card gets what the checkpoint knows (kind, dataset, object ids, steps, config, training seconds)
 plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
-given (merged under "metrics"). Folder: cosy_lite/reference/NAME/ (cosy_lite.inference.reference_models).
+given (merged under "metrics"). Folder: models/NAME/ (cosy_lite.inference.reference_models).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
             "source_checkpoint": str(args.checkpoint), "note": args.note,
             "metrics": {p.stem: json.loads(p.read_text()) for p in args.metrics}}
     weights, card_path = publish(args.checkpoint, reference_root() / args.name, card)
-    print(f"{weights} ({weights.stat().st_size / 2**20:.2f} MiB), {card_path}")
+    print(", ".join(f"{w} ({w.stat().st_size / 2**20:.2f} MiB)" for w in weights) + f"; {card_path}")
     return 0
 
 

@@ -27,6 +27,7 @@ from cosy_lite.inference import iterate_np
 from cosy_lite.models import flow_pose_solver, flow_pose_solver_np, render_and_compare
 from cosy_lite.inference.reference_models import (ReferenceModelError, fill_arguments, reference_models, reference_names,
                                          reference_root)
+from cosy_lite.train.checkpoint import shard_paths
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "ycbvsynth"
@@ -45,7 +46,9 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
     for kind, path in ref.weights.items():
         card = ref.cards[kind]
         assert card["kind"] == kind and card["dataset"] == NAME and card["obj_ids"] == list(range(1, 22))
-        assert card["weights_bytes"] == path.stat().st_size and card["steps"] > 0
+        files = shard_paths(path)
+        assert card["weights"] == [f.name for f in files] and all(f.stat().st_size < 5e6 for f in files)
+        assert card["weights_bytes"] == sum(f.stat().st_size for f in files) and card["steps"] > 0
         for key in ("training_command", "machine", "training_seconds", "metrics", "config"):
             assert card[key], f"{kind}.json: field {key!r} is empty"
     assert ref.setting("start") == "templates" and ref.setting("n_candidates") == 5
@@ -58,7 +61,7 @@ def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
     if not tracked:
         pytest.skip("not a git checkout")
     weights = [f for f in tracked if f.endswith((".safetensors", ".pt", ".pth", ".onnx", ".ckpt"))]  # (.bin: glTF meshes)
-    assert weights and all(f.startswith("cosy_lite/reference/") for f in weights), weights
+    assert weights and all(f.startswith("models/") for f in weights), weights
 
 
 def test_unknown_or_broken_sets_name_the_problem(tmp_path):
@@ -84,11 +87,11 @@ def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_
                       config={"dataset": "toy", "loop": {"batch_size": 8}}, step=42,
                       train_state={"elapsed_s": 61.25}, meta={"obj_ids": [1, 2], "dataset": "toy"})
     save_checkpoint(tmp_path / "checkpoint.pt", ckpt)
-    weights, card_path = publish(tmp_path / "checkpoint.pt", tmp_path / "toy", {"training_command": "python train.py"})
+    (weights,), card_path = publish(tmp_path / "checkpoint.pt", tmp_path / "toy", {"training_command": "python train.py"})
     card = json.loads(card_path.read_text())
     assert (card["kind"], card["dataset"], card["obj_ids"], card["steps"]) == ("refiner", "toy", [1, 2], 42)
     assert card["training_seconds"] == 61.2 and card["training_command"] == "python train.py"
-    assert card["weights_bytes"] == weights.stat().st_size
+    assert card["weights"] == ["refiner.safetensors"] and card["weights_bytes"] == weights.stat().st_size
     back = load_weights(weights)
     assert back.step == 42 and torch.equal(back.model["w"], ckpt.model["w"].half().float())
     before = weights.read_bytes()

@@ -62,3 +62,19 @@ def test_unusable_weights_files_are_refused_by_name(tmp_path):
         load_weights(f)
     with pytest.raises(CheckpointError, match="weights file not found"):
         load_weights(tmp_path / "none.safetensors")
+
+
+def test_sharded_weights_round_trip_and_a_missing_shard_is_named(tmp_path):
+    ck = Checkpoint(kind="refiner", model={f"w{i}": torch.full((256,), float(i)) for i in range(5)},
+                    config={"a": 1}, step=3, meta={"obj_ids": [1]})
+    files = save_weights(tmp_path / "refiner.safetensors", ck, max_shard_bytes=1200)  # 512 B per fp16 tensor
+    assert [f.name for f in files] == [f"refiner-0000{i}-of-00003.safetensors" for i in (1, 2, 3)]
+    assert not (tmp_path / "refiner.safetensors").exists()
+    back = load_weights(files[1])  # any shard names the whole set
+    assert back.step == 3 and sorted(back.model) == sorted(ck.model)
+    assert all(torch.equal(back.model[k], ck.model[k]) for k in ck.model)
+    assert load_checkpoint(files[0], kind="refiner").step == 3
+    files[2].unlink()
+    with pytest.raises(CheckpointError, match=r"refiner-00003-of-00003.safetensors.*not found"):
+        load_weights(files[0])
+

@@ -1,11 +1,12 @@
-"""Reference models: trained networks shipped inside the package, one folder per dataset.
+"""Reference models: trained networks kept in the repository, one folder per dataset.
 
-The package data folder ``cosy_lite/reference/NAME/`` (found from this file, so it works installed) holds, for the dataset NAME (e.g. ``ycbvsynth``), each trained network
-as ``KIND.safetensors`` (fp16 weights + the training config and metadata as JSON,
-:func:`~cosy_lite.train.checkpoint.save_weights`: loading runs no code) with its card ``KIND.json``
-(dataset, object ids, exact training command, steps, crops seen, wall time, machine, held-out
-metrics), and ``pipeline.json``: how the set is meant to run (start poses, candidates, refiner
-iterations) and what the whole pipeline measured on the dataset's test split.
+``models/NAME/`` at the top of the checkout (or ``$COSY_LITE_MODELS/NAME/``) holds, for the dataset
+NAME (e.g. ``ycbvsynth``), each trained network as ``KIND.safetensors`` or, above
+:data:`MAX_FILE_BYTES`, its shards ``KIND-0000i-of-0000N.safetensors`` (fp16 weights + the training
+config and metadata as JSON, :func:`~cosy_lite.train.checkpoint.save_weights`: loading runs no
+code) with its card ``KIND.json`` (dataset, object ids, exact training command, steps, crops seen,
+wall time, machine, held-out metrics), and ``pipeline.json``: how the set is meant to run (start
+poses, candidates, refiner iterations) and what the whole pipeline measured on the dataset's test split.
 
 :func:`reference_models` finds a set by name (``Predictor.from_pretrained(NAME)``, ``infer.py
 --pretrained NAME``); :func:`publish` writes one network of a set from a training run.
@@ -14,6 +15,7 @@ iterations) and what the whole pipeline measured on the dataset's test split.
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,9 +30,22 @@ DEFAULT_PIPELINE = {"start": "coarse", "n_candidates": 1, "n_refiner_iterations"
 _NAME = re.compile(r"^[A-Za-z0-9]+$")  # a BOP dataset name: no '_' or '-'
 
 
+MAX_FILE_BYTES = 4 * 2**20  # larger weights are sharded: the repository keeps no file over 5 MB
+
+
 def reference_root() -> Path:
-    """The folder of the shipped sets (``cosy_lite/reference/``, inside the installed package)."""
-    return Path(__file__).resolve().parents[1] / "reference"
+    """The folder of the sets: ``$COSY_LITE_MODELS``, else ``models/`` of the source checkout."""
+    env = os.environ.get("COSY_LITE_MODELS")
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "models"
+
+
+def weights_file(folder: Path, kind: str) -> Path | None:
+    """``KIND.safetensors`` of ``folder``, or the first of its shards; None if it has neither."""
+    single = folder / f"{kind}.safetensors"
+    if single.is_file():
+        return single
+    first = sorted(folder.glob(f"{kind}-00001-of-*.safetensors"))
+    return first[0] if first else None
 
 
 class ReferenceModelError(CosyLiteError):
@@ -60,6 +75,8 @@ class ReferenceModels:
 def reference_names(root: Path | None = None) -> list[str]:
     """Names of the shipped sets (folders with at least one weights file)."""
     root = root or reference_root()
+    if not root.is_dir():
+        return []
     return sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("*.safetensors")))
 
 
@@ -79,7 +96,7 @@ def reference_models(name: str, root: Path | None = None) -> ReferenceModels:
     folder = root / name
     if not _NAME.match(name) or not folder.is_dir():
         raise ReferenceModelError(f"no reference models named {name!r} (available: {reference_names(root)})")
-    weights = {k: folder / f"{k}.safetensors" for k in KINDS if (folder / f"{k}.safetensors").is_file()}
+    weights = {k: w for k in KINDS if (w := weights_file(folder, k)) is not None}
     if not weights:
         raise ReferenceModelError(f"{folder}: no weights file ({', '.join(k + '.safetensors' for k in KINDS)})")
     cards = {k: _read_json(folder / f"{k}.json") for k in weights if (folder / f"{k}.json").is_file()}
@@ -113,13 +130,13 @@ def fill_arguments(args: Any, use_networks: bool = True) -> None:
                 setattr(args, kind, ref.path(kind))
 
 
-def _same_weights(path: Path, ckpt: Any) -> bool:
+def _same_weights(path: Path | None, ckpt: Any) -> bool:
     """Whether the weights file at ``path`` holds ``ckpt``'s step and tensors (as fp16)."""
     import torch
 
     from cosy_lite.train.checkpoint import CheckpointError, load_weights
 
-    if not path.is_file():
+    if path is None:
         return False
     try:
         old = load_weights(path)
@@ -130,24 +147,32 @@ def _same_weights(path: Path, ckpt: Any) -> bool:
             and all(torch.equal(old.model[k], half[k]) for k in half))
 
 
-def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) -> tuple[Path, Path]:
+def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) -> tuple[list[Path], Path]:
     """Write the network of a training ``checkpoint`` into the set ``folder`` as fp16
-    ``KIND.safetensors`` and its card ``KIND.json``: ``card`` (command, machine, metrics ...) plus
-    what the checkpoint knows (kind, dataset, object ids, step, config, training seconds)."""
-    from cosy_lite.train.checkpoint import load_checkpoint, save_weights
+    ``KIND.safetensors`` (sharded above :data:`MAX_FILE_BYTES`) and its card ``KIND.json``: ``card``
+    (command, machine, metrics ...) plus what the checkpoint knows (kind, dataset, object ids, step,
+    config, training seconds). Returns (the weights files, the card)."""
+    from cosy_lite.train.checkpoint import load_checkpoint, save_weights, shard_paths
 
     ckpt = load_checkpoint(checkpoint)
     if ckpt.kind not in KINDS:
         raise ReferenceModelError(f"{checkpoint}: kind {ckpt.kind!r} is not one of {KINDS}")
     folder = Path(folder)
-    weights = folder / f"{ckpt.kind}.safetensors"
-    if not _same_weights(weights, ckpt):  # (a card update leaves the weights file as it is)
-        save_weights(weights, ckpt)
+    old = weights_file(folder, ckpt.kind)
+    unsharded_large = old is not None and old.name == f"{ckpt.kind}.safetensors" and old.stat().st_size > MAX_FILE_BYTES + 2**16
+    if _same_weights(old, ckpt) and not unsharded_large:  # (a card update leaves the weights files as they are)
+        files = shard_paths(old)
+    else:
+        stale = shard_paths(old) if old is not None else []
+        files = save_weights(folder / f"{ckpt.kind}.safetensors", ckpt, max_shard_bytes=MAX_FILE_BYTES)
+        for f in stale:
+            if f not in files:
+                f.unlink()
     known = {"kind": ckpt.kind, "dataset": ckpt.meta.get("dataset", ckpt.config.get("dataset")),
              "obj_ids": ckpt.meta.get("obj_ids") or ckpt.meta.get("label_map", {}).get("obj_ids"),
              "steps": ckpt.step, "training_seconds": round(float(ckpt.train_state.get("elapsed_s", 0.0)), 1),
-             "weights": weights.name, "weights_bytes": weights.stat().st_size, "weights_dtype": "float16",
-             "config": ckpt.config}
+             "weights": [f.name for f in files], "weights_bytes": sum(f.stat().st_size for f in files),
+             "weights_dtype": "float16", "config": ckpt.config}
     card_path = folder / f"{ckpt.kind}.json"
     card_path.write_text(json.dumps({**known, **card}, indent=1) + "\n")
-    return weights, card_path
+    return files, card_path

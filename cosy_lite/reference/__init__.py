@@ -1,2 +1,2 @@
-"""Reference models shipped with the package: one data folder per dataset (weights, cards; found by
-:mod:`cosy_lite.inference.reference_models`) and :mod:`~cosy_lite.reference.score_refiner`."""
+"""Scoring of reference models (:mod:`~cosy_lite.reference.score_refiner`); their files are in ``models/``
+(:mod:`cosy_lite.inference.reference_models`)."""

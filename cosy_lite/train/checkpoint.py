@@ -235,8 +235,39 @@ def _plain_json(value: Any, path: Path, field: str) -> str:
     return text
 
 
-def save_weights(path: str | Path, ckpt: Checkpoint, dtype: torch.dtype = torch.float16) -> None:
-    """Write ``ckpt``'s model (floating tensors as ``dtype``) + kind, step, config, meta (atomically)."""
+_SHARD = re.compile(r"^(?P<stem>.+)-(?P<i>\d{5})-of-(?P<n>\d{5})\.safetensors$")
+
+
+def shard_paths(path: str | Path) -> list[Path]:
+    """The files of the weights ``path``: itself, or for a shard ``STEM-0000i-of-0000N.safetensors``
+    all N shards (what :func:`save_weights` writes with ``max_shard_bytes``)."""
+    path = Path(path)
+    m = _SHARD.match(path.name)
+    if m is None:
+        return [path]
+    n = int(m["n"])
+    return [path.with_name(f"{m['stem']}-{i:05d}-of-{n:05d}.safetensors") for i in range(1, n + 1)]
+
+
+def _shards(tensors: dict[str, torch.Tensor], max_bytes: int | None) -> list[dict[str, torch.Tensor]]:
+    """``tensors`` split in order into groups of at most ``max_bytes`` (a larger tensor alone)."""
+    groups: list[dict[str, torch.Tensor]] = [{}]
+    size = 0
+    for k, v in tensors.items():
+        n = v.numel() * v.element_size()
+        if max_bytes is not None and groups[-1] and size + n > max_bytes:
+            groups.append({})
+            size = 0
+        groups[-1][k] = v
+        size += n
+    return groups
+
+
+def save_weights(path: str | Path, ckpt: Checkpoint, dtype: torch.dtype = torch.float16,
+                 max_shard_bytes: int | None = None) -> list[Path]:
+    """Write ``ckpt``'s model (floating tensors as ``dtype``) + kind, step, config, meta (atomically),
+    as ``path``, or with ``max_shard_bytes`` as shards ``STEM-00001-of-0000N.safetensors`` beside it
+    when one file would be larger (each carries the metadata). Returns the files written."""
     from safetensors.torch import save_file
 
     path = Path(path)
@@ -249,28 +280,44 @@ def save_weights(path: str | Path, ckpt: Checkpoint, dtype: torch.dtype = torch.
             "config": _plain_json(ckpt.config, path, "config"), "meta": _plain_json(ckpt.meta, path, "meta"),
             "version": cosy_lite.__version__}
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_path(path)
-    try:
-        save_file(tensors, str(tmp), metadata=meta)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    groups = _shards(tensors, max_shard_bytes)
+    n = len(groups)
+    stem = path.name.removesuffix(WEIGHTS_SUFFIX)
+    paths = [path] if n == 1 else [path.with_name(f"{stem}-{i:05d}-of-{n:05d}{WEIGHTS_SUFFIX}") for i in range(1, n + 1)]
+    for group, out in zip(groups, paths):
+        tmp = temporary_path(out)
+        try:
+            save_file(group, str(tmp), metadata=meta)
+            tmp.replace(out)
+        finally:
+            tmp.unlink(missing_ok=True)
+    return paths
 
 
-def load_weights(path: str | Path) -> Checkpoint:
-    """The :class:`Checkpoint` of a weights file (float32 tensors; no training state).
-    Raises :class:`CheckpointError` naming the file and field for anything unusable."""
+def _read_weights_file(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
     from safetensors import SafetensorError, safe_open
 
-    path = Path(path)
     if not path.is_file():
         raise CheckpointError(path, "weights file not found")
     try:
         with safe_open(str(path), framework="pt") as f:
-            header = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
+            return f.metadata() or {}, {k: f.get_tensor(k) for k in f.keys()}
     except (SafetensorError, OSError, ValueError, RuntimeError) as e:
         raise CheckpointError(path, f"not a readable safetensors file ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+
+
+def load_weights(path: str | Path) -> Checkpoint:
+    """The :class:`Checkpoint` of a weights file, or of all shards of a sharded one given any of them
+    (float32 tensors; no training state). Raises :class:`CheckpointError` naming the file and field
+    for anything unusable (a shard missing, shards of different networks)."""
+    path = Path(path)
+    header, tensors = {}, {}
+    for part in shard_paths(path):
+        part_header, part_tensors = _read_weights_file(part)
+        if header and any(part_header.get(k) != header.get(k) for k in ("kind", "step", "config", "meta")):
+            raise CheckpointError(part, f"metadata differs from {path.name}'s: shards of another network")
+        header = header or part_header
+        tensors.update(part_tensors)
     missing = [k for k in _WEIGHTS_FIELDS if k not in header]
     if missing:
         raise CheckpointError(path, f"missing metadata field(s) {missing}: not a cosy_lite weights file")
