@@ -1,5 +1,6 @@
-"""Typed configuration: dataclasses hold the defaults, YAML files in ``configs/`` hold only the
-differences, and ``key=value`` command-line overrides come last (merged with OmegaConf)."""
+"""Typed configuration: dataclasses hold the defaults, YAML files in ``cosy_lite/configs/`` (shipped in
+the package: :func:`packaged_config`) hold only the differences, and ``key=value`` command-line
+overrides come last (merged with OmegaConf)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,15 @@ from omegaconf.errors import OmegaConfBaseException
 from cosy_lite.errors import ConfigError
 
 T = TypeVar("T")
+
+
+def packaged_config(*parts: str) -> Path:
+    """A YAML file shipped in the package's ``configs/`` folder, e.g. ``packaged_config("synth", "tiny.yaml")``
+    or ``packaged_config("refiner", "demo.yaml")`` (found with importlib.resources, so an installed package
+    finds its own; the file may not exist: callers check)."""
+    from importlib.resources import files
+
+    return Path(str(files("cosy_lite").joinpath("configs", *parts)))
 
 
 def _omegaconf_problem(e: OmegaConfBaseException) -> tuple[str, str]:
