@@ -14,8 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cosy_lite.bop.io import ModelInfo
-from cosy_lite.geometry.symmetries import symmetry_transforms
+from cosy_lite.geometry.symmetries import SymmetryInfo, symmetry_transforms
 
 N_POINTS = 2000  # CosyPose: 2000 points for the crop boxes, 2600 for the loss (n_points_loss)
 N_CONTINUOUS = 64  # steps of a continuous symmetry for training, as CosyPose (the BOP evaluation uses 315)
@@ -52,7 +51,7 @@ def sample_model_points(
     return torch.as_tensor(v[idx], dtype=dtype)
 
 
-def object_symmetries(info: ModelInfo, n_continuous: int = N_CONTINUOUS) -> np.ndarray:
+def object_symmetries(info: SymmetryInfo, n_continuous: int = N_CONTINUOUS) -> np.ndarray:
     """The symmetry set ``[S,4,4]`` (m) of an object, identity first, each continuous symmetry
     discretised into ``n_continuous`` rotations (``k 2 pi / n_continuous``, k = 0..n-1), composed
     with the discrete ones as :func:`~cosy_lite.geometry.symmetries.symmetry_transforms` does."""

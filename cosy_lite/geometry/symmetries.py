@@ -2,7 +2,8 @@
 
 Two functions:
 
-* :func:`symmetry_transforms` turns a :class:`~cosy_lite.bop.io.ModelInfo` into the finite set of
+* :func:`symmetry_transforms` turns an object's symmetries (:class:`SymmetryInfo`, e.g. a
+  :class:`~cosy_lite.bop.io.ModelInfo`) into the finite set of
   transformations the BOP toolkit (``misc.get_symmetry_transformations``) evaluates MSSD/MSPD with.
 * :func:`find_symmetries` identifies the symmetries of a model as in the BOP Challenge 2020 paper
   (Sec. "Identifying Global Object Symmetries"): a transformation ``S`` is a candidate if the
@@ -16,11 +17,10 @@ A symmetry ``S`` maps model coordinates to model coordinates: ``x' = S[:3,:3] @ 
 from __future__ import annotations
 
 import math
+from typing import Protocol, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
-
-from cosy_lite.bop.io import ModelInfo
 
 EPS_MIN = 0.015  # m, the paper's truncation of the Hausdorff tolerance
 EPS_DIAMETER_FRACTION = 0.1  # eps = max(EPS_MIN, 0.1 * diameter)
@@ -37,6 +37,20 @@ MAX_POINTS = 5000  # vertices kept (deterministically) as the transformed sample
 # on every geometric symmetry. Caveat: a 3 deg rotation of a printed label already scores
 # 0.03-0.11 (texture detail), so a true symmetry of a finely printed texture may be rejected.
 COLOUR_THRESHOLD = 0.08
+
+
+class SymmetryInfo(Protocol):
+    """The symmetries of an object as ``models_info.json`` lists them, in metres: what
+    :func:`symmetry_transforms` reads (a :class:`~cosy_lite.bop.io.ModelInfo` is one; geometry
+    does not depend on the BOP readers)."""
+
+    @property
+    def symmetries_discrete(self) -> np.ndarray:  # [S,4,4], t in m
+        ...
+
+    @property
+    def symmetries_continuous(self) -> Sequence[tuple[np.ndarray, np.ndarray]]:  # (axis [3], offset [3] m)
+        ...
 
 
 def symmetry_tolerance(diameter: float) -> float:
@@ -66,7 +80,7 @@ def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- BOP discretisation
 
 
-def symmetry_transforms(info: ModelInfo, max_sym_disc_step: float = 0.01, include_zero_angle: bool = True) -> np.ndarray:
+def symmetry_transforms(info: SymmetryInfo, max_sym_disc_step: float = 0.01, include_zero_angle: bool = True) -> np.ndarray:
     """The symmetry set [N,4,4] (t in metres) as the BOP toolkit's ``get_symmetry_transformations``.
 
     Discrete set D = identity (first) + ``info.symmetries_discrete``. Each continuous symmetry
