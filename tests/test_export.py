@@ -277,8 +277,7 @@ def test_mismatched_manifest_gives_errors_naming_file_and_field(export, tmp_path
 
 
 def test_a_graph_with_three_input_channels_is_refused(tmp_path):
-    from cosy_lite.export.manifest import ModelEntry, metadata_of
-    from cosy_lite.export.onnx_export import _write_metadata
+    from cosy_lite.export.manifest import ModelEntry, metadata_of, write_metadata
     from cosy_lite.models.pose_net import PoseNet
 
     net = PoseNet("resnet18", in_channels=3).eval()
@@ -288,7 +287,7 @@ def test_a_graph_with_three_input_channels_is_refused(tmp_path):
         torch.onnx.export(net, (torch.rand(1, 3, *CROP),), str(path), dynamo=False, input_names=["images"],
                           output_names=["delta"], dynamic_axes={"images": {0: "batch"}})
     entry = ModelEntry("rgb_only.onnx", "coarse", OBJ_IDS, "images", ["batch", 6, *CROP], list(CROP))
-    _write_metadata(path, metadata_of(entry, {}))  # metadata claims 6 channels, the graph takes 3
+    write_metadata(path, metadata_of(entry, {}))  # metadata claims 6 channels, the graph takes 3
     with pytest.raises(OnnxModelError, match=r"rgb_only.onnx \[input images shape\]: \['batch', 3, 48, 64\], "
                                              r"expected \[batch, 6, 48, 64\]"):
         OnnxPoseNet(path)

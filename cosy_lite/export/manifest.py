@@ -109,6 +109,20 @@ def metadata_of(entry: ModelEntry, config: dict[str, Any]) -> dict[str, str]:
     return meta
 
 
+def write_metadata(path: Path, meta: dict[str, str]) -> None:
+    """Replace the ``metadata_props`` of the ``.onnx`` file ``path`` with ``meta`` (e.g.
+    :func:`metadata_of`) and validate the file with ``onnx.checker``."""
+    import onnx
+
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for k, v in sorted(meta.items()):
+        model.metadata_props.add(key=k, value=v)
+    model.producer_name = "cosy_lite"
+    onnx.save(model, str(path))
+    onnx.checker.check_model(str(path))
+
+
 def parse_json_meta(meta: dict[str, str], key: str, path: Path) -> Any:
     """The JSON value of ``metadata_props[key]`` (OnnxModelError naming the file and key)."""
     if key not in meta:

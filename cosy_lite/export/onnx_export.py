@@ -32,7 +32,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from cosy_lite.export.manifest import POSE_INPUT_CHANNELS, Manifest, ModelEntry, file_digest, metadata_of
+from cosy_lite.export.manifest import (
+    POSE_INPUT_CHANNELS, Manifest, ModelEntry, file_digest, metadata_of, write_metadata,
+)
 
 OPSET = 17  # >= 11 for Mask R-CNN (NMS, RoiAlign); 17 is what the legacy exporter knows well
 POSE_INPUT, POSE_OUTPUT = "images", "delta"
@@ -41,21 +43,8 @@ DETECTOR_OUTPUTS = ("boxes", "labels", "scores", "masks")
 CHECK_BATCH = 2
 
 
-def _write_metadata(path: Path, meta: dict[str, str]) -> None:
-    """Replace ``path``'s ``metadata_props`` with ``meta`` and validate it with ``onnx.checker``."""
-    import onnx
-
-    model = onnx.load(str(path))
-    del model.metadata_props[:]
-    for k, v in sorted(meta.items()):
-        model.metadata_props.add(key=k, value=v)
-    model.producer_name = "cosy_lite"
-    onnx.save(model, str(path))
-    onnx.checker.check_model(str(path))
-
-
 def _finish(path: Path, entry: ModelEntry, config: dict[str, Any]) -> ModelEntry:
-    _write_metadata(path, metadata_of(entry, config))
+    write_metadata(path, metadata_of(entry, config))
     entry.bytes, entry.sha256 = file_digest(path)
     return entry
 

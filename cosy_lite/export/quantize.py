@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cosy_lite.export.manifest import ModelEntry, file_digest, metadata_of
+from cosy_lite.export.manifest import ModelEntry, file_digest, metadata_of, write_metadata
 
 CHECK_BATCH = 8
 
@@ -30,15 +30,13 @@ def quantize_pose_net_int8(src: Path, dst: Path, entry: ModelEntry, config: dict
     from onnxruntime.quantization import QuantType, quantize_dynamic
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    from cosy_lite.export.onnx_export import _write_metadata
-
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)  # shapes + folding, as recommended
         quantize_dynamic(str(pre), str(dst), weight_type=QuantType.QInt8 if signed_weights else QuantType.QUInt8)
     out = copy.deepcopy(entry)
     out.file, out.quantization, out.source = dst.name, "int8", f"{entry.source} (quantised from {src.name})"
-    _write_metadata(dst, metadata_of(out, config))
+    write_metadata(dst, metadata_of(out, config))
     out.bytes, out.sha256 = file_digest(dst)
     x = np.random.default_rng(seed).random((CHECK_BATCH, *entry.input_shape[1:]), dtype=np.float32)
     runs = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {entry.input_name: x})[0]
