@@ -5,27 +5,42 @@
 
 The card gets what the checkpoint knows (kind, dataset, object ids, steps, config, training seconds)
 plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
-given (merged under "metrics"). Folder: models/NAME/ (cosy_lite.inference.reference_models).
+given (merged under "metrics"). Folder: ``--out``, default ``cosy_lite/reference/weights/NAME/`` of this
+checkout (shipped in the package as data; ``$COSY_LITE_MODELS/NAME/`` when that is set), see
+cosy_lite.inference.reference_models.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 from datetime import date
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[1]
+# the checkout's reference-model folder (not an installed copy's): published sets are committed here
+REFERENCE_DIR = REPO / "cosy_lite" / "reference" / "weights"
+
+
+def default_folder(name: str) -> Path:
+    """Where the set ``name`` is written: ``$COSY_LITE_MODELS/NAME``, else this checkout's :data:`REFERENCE_DIR`."""
+    env = os.environ.get("COSY_LITE_MODELS")
+    return (Path(env) if env else REFERENCE_DIR) / name
+
 
 def main(argv: list[str] | None = None) -> int:
-    from cosy_lite.inference.reference_models import publish, reference_root
+    from cosy_lite.inference.reference_models import publish
     from cosy_lite.train.checkpoint import load_checkpoint
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--name", required=True, help="the set (dataset name), e.g. ycbvsynth")
     ap.add_argument("--command", required=True, help="the exact training command(s) that made the checkpoint")
+    ap.add_argument("--out", type=Path, default=None, metavar="DIR",
+                    help="the set's folder (default: $COSY_LITE_MODELS/NAME, else cosy_lite/reference/weights/NAME)")
     ap.add_argument("--world-size", type=int, default=1, help="training processes (DDP)")
     ap.add_argument("--machine", default=f"{platform.machine()} CPU, {platform.node() or 'unknown'}; no GPU")
     ap.add_argument("--note", default="", help="anything else a user should know")
@@ -39,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{unit}_seen": ckpt.step * batch * args.world_size, "published": date.today().isoformat(),
             "source_checkpoint": str(args.checkpoint), "note": args.note,
             "metrics": {p.stem: json.loads(p.read_text()) for p in args.metrics}}
-    weights, card_path = publish(args.checkpoint, reference_root() / args.name, card)
+    weights, card_path = publish(args.checkpoint, args.out or default_folder(args.name), card)
     print(", ".join(f"{w} ({w.stat().st_size / 2**20:.2f} MiB)" for w in weights) + f"; {card_path}")
     return 0
 

@@ -1,6 +1,6 @@
 """Reference models: trained networks kept in the repository, one folder per dataset.
 
-``models/NAME/`` at the top of the checkout (or ``$COSY_LITE_MODELS/NAME/``) holds, for the dataset
+``cosy_lite/reference/weights/NAME/``, shipped in the package (or ``$COSY_LITE_MODELS/NAME/``), holds, for the dataset
 NAME (e.g. ``ycbvsynth``), each trained network as ``KIND.safetensors`` or, above
 :data:`MAX_FILE_BYTES`, its shards ``KIND-0000i-of-0000N.safetensors`` (fp16 weights + the training
 config and metadata as JSON, :func:`~cosy_lite.train.checkpoint.save_weights`: loading runs no
@@ -34,9 +34,14 @@ MAX_FILE_BYTES = 4 * 2**20  # larger weights are sharded: the repository keeps n
 
 
 def reference_root() -> Path:
-    """The folder of the sets: ``$COSY_LITE_MODELS``, else ``models/`` of the source checkout."""
+    """The folder of the sets: ``$COSY_LITE_MODELS``, else ``weights/`` of the package
+    :mod:`cosy_lite.reference` (package data, found with importlib.resources: installed or not)."""
     env = os.environ.get("COSY_LITE_MODELS")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "models"
+    if env:
+        return Path(env)
+    from importlib.resources import files
+
+    return Path(str(files("cosy_lite.reference").joinpath("weights")))
 
 
 def weights_file(folder: Path, kind: str) -> Path | None:
