@@ -32,6 +32,7 @@ from cosy_lite.train.checkpoint import shard_paths
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "ycbvsynth"
 SIZE_LIMIT_BYTES = 40 * 10**6  # the reference-model folder, all sets together
+REFERENCE_DIR = "cosy_lite/reference/weights/"  # the only weights in the repository (shipped in the package)
 # the first test layouts of ycbvsynth, 2 views each (36 targets of 15 objects)
 TEST_IMAGES = ["test.n_images=4", "test.views_per_layout=2"]
 
@@ -61,7 +62,9 @@ def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
     if not tracked:
         pytest.skip("not a git checkout")
     weights = [f for f in tracked if f.endswith((".safetensors", ".pt", ".pth", ".onnx", ".ckpt"))]  # (.bin: glTF meshes)
-    assert weights and all(f.startswith("models/") for f in weights), weights
+    assert weights and all(f.startswith(REFERENCE_DIR) for f in weights), weights
+    large = [f for f in tracked if (ROOT / f).is_file() and not (ROOT / f).is_symlink() and (ROOT / f).stat().st_size > 5e6]
+    assert not large, f"tracked files over 5 MB: {large}"
 
 
 def test_unknown_or_broken_sets_name_the_problem(tmp_path):
