@@ -12,8 +12,8 @@ Usage: python bench/bench_onnx.py [--dataset data/ycbvsynth] [--threads 2] [--re
 2. End to end, per profile and object count: one 640x480 image of ``--dataset`` (as
    ``bench_inference.py``: its most visible 1 or 5 objects, GT visible boxes as detections, no
    detector, no ICP), coarse + 4 refiner iterations through ``Predictor.predict`` with the torch
-   networks and with the onnxruntime sessions; rendering is shared, crops and pose updates are torch
-   for the torch backend and numpy (``iterate_np``) for onnxruntime.
+   networks and with the onnxruntime sessions; rendering, crops and pose updates are the same loop
+   (torch) for both backends.
 3. The detector (demo profile, untrained; ``--no-detector`` skips it): torch vs onnxruntime on the image.
 
 Every variant runs ``--threads`` threads (torch: ``set_num_threads``, OpenMP waiting passively;
@@ -76,7 +76,7 @@ def build_nets(profile: str, tmp: Path, threads: int, int8: bool, random_head: b
     from cosy_lite.export.onnx_models import OnnxPoseNet
     from cosy_lite.export.quantize import quantize_pose_net_int8
     from cosy_lite.inference.predictor import inference_net
-    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
     backbone, crop = PROFILES[profile]
     torch.manual_seed(0)
@@ -128,8 +128,8 @@ def forward_table(nets, batches: list[int], warmup: int, repeat: int) -> list[st
 def end_to_end_table(ds, nets, objects_counts: list[int], warmup: int, repeat: int) -> list[str]:
     from bench_inference import oracle, pick_image
 
-    from cosy_lite.inference.loaders import PoseModel
     from cosy_lite.inference.predictor import Predictor
+    from cosy_lite.model_files.loaders import PoseModel
     from cosy_lite.models.object_table import ObjectTable
     from cosy_lite.render.renderer import PyrenderRenderer
 

@@ -5,7 +5,7 @@ The accuracy floors (:data:`FLOORS`) were set from what the models measure on th
 margin; a gross error in the render intrinsics or the pose update drops them far below (small crop
 errors the learned refiner absorbs: those are the oracle test's, ``test_oracle_loop.py``). Run
 ``COSY_LITE_TEST_BUG=NAME pytest tests/test_reference_models.py -k accuracy`` with a name of
-:data:`BUGS` (the bug is patched into both loops for that run) to see what it does to the accuracy.
+:data:`BUGS` (the bug is patched into the render-and-compare loop for that run) to see what it does to the accuracy.
 """
 
 from __future__ import annotations
@@ -17,17 +17,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.predictor import Predictor
-from cosy_lite.inference import iterate_np
-from cosy_lite.models import flow_pose_solver, flow_pose_solver_np, render_and_compare
+from cosy_lite.models import flow_pose_solver, render_and_compare
 from cosy_lite.inference.reference_models import (ReferenceModelError, fill_arguments, reference_models, reference_names,
                                          reference_root)
-from cosy_lite.train.checkpoint import shard_paths
+from cosy_lite.model_files.checkpoint import shard_paths
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "ycbvsynth"
@@ -84,7 +82,7 @@ def test_unknown_or_broken_sets_name_the_problem(tmp_path):
 
 def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_path):
     from cosy_lite.inference.reference_models import publish
-    from cosy_lite.train.checkpoint import Checkpoint, load_weights, save_checkpoint
+    from cosy_lite.model_files.checkpoint import Checkpoint, load_weights, save_checkpoint
 
     ckpt = Checkpoint(kind="refiner", model={"w": torch.linspace(-1, 1, 12).reshape(3, 4), "n": torch.tensor(7)},
                       config={"dataset": "toy", "loop": {"batch_size": 8}}, step=42,
@@ -174,7 +172,7 @@ def _crop_centre_shifted(crop_boxes):
 
 def _pixels_shifted(crop_images):
     def buggy(images, boxes, *args, **kwargs):
-        boxes = boxes.clone() if hasattr(boxes, "clone") else boxes.copy()
+        boxes = boxes.clone()
         boxes[:, 0::2] += 4.0  # the pixels cropped 4 image px right of the box that K_crop describes
         return crop_images(images, boxes, *args, **kwargs)
 
@@ -183,11 +181,7 @@ def _pixels_shifted(crop_images):
 
 def _pixels_mirrored(crop_images):
     def buggy(*args, **kwargs):
-        crops = crop_images(*args, **kwargs)  # sampled right to left:
-        if hasattr(crops, "flip"):
-            return crops.flip(-1)
-        crops[...] = crops[..., ::-1].copy()  # in place: the numpy loop reads its out= buffer
-        return crops
+        return crop_images(*args, **kwargs).flip(-1)  # sampled right to left
 
     return buggy
 
@@ -218,24 +212,24 @@ def _flow_xy_swapped(pose_from_flow):
     return buggy
 
 
-# name -> ((module, function) of each loop to replace, buggy version from the original)
-CROPS = [(render_and_compare, "crop_boxes"), (iterate_np, "crop_boxes")]
-K_CROPS = [(render_and_compare, "crop_intrinsics"), (iterate_np, "crop_intrinsics")]
+# name -> ((module, function) to replace, buggy version from the original)
+CROPS = [(render_and_compare, "crop_boxes")]
+K_CROPS = [(render_and_compare, "crop_intrinsics")]
 BUGS = {
     "crop_margin_1.5": (CROPS, _crop_margin(1.5)),
     "crop_margin_2": (CROPS, _crop_margin(2.0)),
     "crop_centre_10px": (CROPS, _crop_centre_shifted),
-    "crop_pixels_4px": ([(render_and_compare, "crop_images"), (iterate_np, "crop_image")], _pixels_shifted),
-    "crop_pixels_mirrored": ([(render_and_compare, "crop_images"), (iterate_np, "crop_image")], _pixels_mirrored),
+    "crop_pixels_4px": ([(render_and_compare, "crop_images")], _pixels_shifted),
+    "crop_pixels_mirrored": ([(render_and_compare, "crop_images")], _pixels_mirrored),
     "render_cx_2px": (K_CROPS, _render_cx_plus_2px),
     "render_focal_1.1": (K_CROPS, _render_focal_x1_1),
-    "flow_update_xy_swapped": ([(flow_pose_solver, "pose_from_flow"), (iterate_np, "pose_from_flow")], _flow_xy_swapped),
+    "flow_update_xy_swapped": ([(flow_pose_solver, "pose_from_flow")], _flow_xy_swapped),
 }
 
 
 @pytest.fixture
 def injected_bug(monkeypatch):
-    """The bug named by $COSY_LITE_TEST_BUG patched into both loops (none when unset)."""
+    """The bug named by $COSY_LITE_TEST_BUG patched into the loop (none when unset)."""
     name = os.environ.get("COSY_LITE_TEST_BUG")
     if name:
         places, make_buggy = BUGS[name]

@@ -11,7 +11,7 @@ import torch
 
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.predictor import Predictor  # noqa: E402
-from cosy_lite.inference.loaders import PoseModel  # noqa: E402
+from cosy_lite.model_files.loaders import PoseModel  # noqa: E402
 from cosy_lite.models.silhouette_templates import (SilhouetteTemplates, mask_boxes, occupancy_grids,  # noqa: E402
                                                    random_rotations, ray_rotations)
 
@@ -162,7 +162,7 @@ def test_predictor_starts_from_the_matched_template(scene):
     assert abs(est.TCO[1, 2, 3].item() / want[1, 2, 3] - 1) < 0.3  # from the box: about the right depth
 
 
-def test_candidates_are_chosen_alike_by_the_torch_and_the_numpy_loop(scene, tmp_path):
+def test_candidates_are_chosen_alike_by_the_torch_and_the_onnx_backend(scene, tmp_path):
     """3 candidates per detection, one refiner iteration each, the most confident goes on for one
     more: the start pose is one of the candidates, and both backends agree."""
     pytest.importorskip("onnxruntime")
@@ -179,7 +179,7 @@ def test_candidates_are_chosen_alike_by_the_torch_and_the_numpy_loop(scene, tmp_
     poses = {}
     for backend, model in (("torch", net), ("onnx", OnnxPoseNet(tmp_path / "refiner.onnx", threads=1))):
         p = _predictor(scene, PoseModel(model, "refiner", CROP, [1, 2], output="flow"), 2, 3)
-        assert p.numpy_loop == (backend == "onnx")
+        assert p.backend == backend
         poses[backend] = est = p.predict(image, K, detections=det)
         assert bool(est.valid.all())
         for i in range(len(det)):
@@ -234,7 +234,7 @@ def test_icp_keeps_the_candidate_the_depth_confirms(scene):
     G = scene["T_true"][boxes, :3, :3]
     assert (_box_error(candidates[boxes, 0, :3, :3], G) > 15).all()  # the first candidates are wrong (17-70 deg) ...
     assert (_box_error(candidates[boxes, -1, :3, :3], G) < 1).all()  # ... the last ones right
-    TCO, results = p._icp_hypotheses(torch.from_numpy(candidates), torch.from_numpy(K), depth, det, (H, W))
+    TCO, results = p.depth_refinement.refine_hypotheses(torch.from_numpy(candidates), torch.from_numpy(K), depth, det, (H, W))
     assert len(results) == 4 and TCO.shape == (4, 4, 4)
     assert _box_error(TCO[boxes, :3, :3].numpy(), G).max() < 0.5
     first = refine_poses_icp(candidates[:, 0], K, depth, scene["masks"], scene["renderer"], scene["ids"], limited)

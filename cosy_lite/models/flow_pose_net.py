@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE
+from cosy_lite.models.flow_pose_solver import FLOW_STRIDE
 from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD
 
 TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16

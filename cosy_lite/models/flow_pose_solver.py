@@ -14,8 +14,7 @@ the current pose. Items with fewer than ``MIN_CELLS`` confident rendered cells, 
 behind-the-camera solution, keep their input pose.
 
 Differentiable in the flow and the confidences (training puts the pose loss behind the solver,
-:meth:`cosy_lite.train.pose_task.PoseTask`); computed in float64 with autocast off. The numpy twin
-for the onnxruntime path is :mod:`cosy_lite.models.flow_pose_solver_np` (same constants, equal results).
+:meth:`cosy_lite.train.pose_task.PoseTask`); computed in float64 with autocast off.
 """
 
 from __future__ import annotations
@@ -23,8 +22,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from cosy_lite.models.flow_pose_solver_np import DAMPING, GN_ITERATIONS, HUBER_PX, MIN_CELLS
 from cosy_lite.models.pose_update import full_precision
+
+FLOW_STRIDE = 8  # px per cell of the flow field (FlowPoseNet.stride)
+MIN_CELLS = 6  # correspondences needed for a pose (6 unknowns)
+GN_ITERATIONS = 10
+HUBER_PX = 2.0  # crop pixels: residuals beyond weigh 1/|r|
+DAMPING = 1e-3  # Levenberg-Marquardt on the Gauss-Newton diagonal
 
 
 def cell_centres(shape: tuple[int, int], stride: int, device: torch.device | str = "cpu") -> Tensor:

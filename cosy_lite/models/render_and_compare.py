@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from cosy_lite.geometry.crops import crop_boxes, crop_images, crop_intrinsics
+from cosy_lite.geometry.pose_checks import valid_poses
 from cosy_lite.models.pose_update import apply_pose_update
 from cosy_lite.render.renderer import Renderer
 
@@ -78,41 +79,77 @@ def updated_poses(TCO: Tensor, inp: NetInputs, out: Tensor, output: str = "delta
     return apply_pose_update(TCO, inp.K_crop, out.to(TCO.dtype))
 
 
+def _by_batch(step: Callable[[slice], tuple[Tensor, ...]], n: int, batch_size: int) -> list[tuple[Tensor, ...]]:
+    return [step(slice(s, s + batch_size)) for s in range(0, n, batch_size)]
+
+
 def iterate_poses(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO_init: Tensor, obj_ids: Sequence[int],
                   points: Tensor, renderer: Renderer, n_iterations: int, crop_resolution: Size,
                   batch_size: int = 32, output: str | None = None) -> list[Tensor]:
-    """Run ``n_iterations`` render-and-compare updates from ``TCO_init [B,4,4]``; returns the poses
-    after each iteration (``n_iterations`` tensors ``[B,4,4]``). ``net`` maps [b,6,h,w] -> [b,9]
-    (``output="delta"``) or a flow field (``"flow"``); None: what ``net`` says (:func:`network_output`)."""
+    """The render-and-compare loop: ``n_iterations`` updates from ``TCO_init [B,4,4]``; returns the
+    poses after each iteration (``n_iterations`` tensors ``[B,4,4]``). ``net`` maps [b,6,h,w] ->
+    [b,9] (``output="delta"``) or a flow field (``"flow"``); None: what ``net`` says
+    (:func:`network_output`). Training validation, the torch predictor and the onnxruntime
+    predictor all iterate here.
+
+    Invalid poses (:func:`~cosy_lite.geometry.pose_checks.valid_poses`: non-finite, not a rotation,
+    behind the camera) are not rendered again: they keep their value through the remaining iterations.
+    """
     output = output or network_output(net)
     poses, TCO = [], TCO_init
     for _ in range(n_iterations):
-        out = []
-        for s in range(0, len(TCO), batch_size):
-            sl = slice(s, s + batch_size)
-            inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
-            out.append(updated_poses(TCO[sl], inp, net(inp.images), output))
-        TCO = torch.cat(out) if out else TCO
+        live = valid_poses(TCO).nonzero().flatten()
+        if len(live) == len(TCO):
+            TCO = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, crop_resolution, batch_size, output)
+        elif len(live):
+            new = _iterate_once(net, images[live], K[live], TCO[live], [obj_ids[i] for i in live.tolist()],
+                                points[live], renderer, crop_resolution, batch_size, output)
+            TCO = TCO.clone()
+            TCO[live] = new.to(TCO.dtype)
         poses.append(TCO)
     return poses
+
+
+def _iterate_once(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int],
+                  points: Tensor, renderer: Renderer, crop_resolution: Size, batch_size: int, output: str) -> Tensor:
+    """One update of every pose ``TCO [B,4,4]``, ``batch_size`` crops per network call."""
+    def step(sl: slice) -> tuple[Tensor]:
+        inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
+        return (updated_poses(TCO[sl], inp, net(inp.images), output),)
+
+    out = _by_batch(step, len(TCO), batch_size)
+    return torch.cat([o[0] for o in out]) if out else TCO
+
+
+NOT_SCORED = -1.0  # the confidence of a candidate that was not run (its pose is invalid)
 
 
 def refine_and_score(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int],
                      points: Tensor, renderer: Renderer, crop_resolution: Size,
                      batch_size: int = 32) -> tuple[Tensor, Tensor]:
     """One iteration of a flow network from ``TCO [B,4,4]`` (arguments as :func:`iterate_poses`):
-    (poses ``[B,4,4]``, confidence ``[B]``: the network's mean confidence over the rendered cells,
-    :func:`~cosy_lite.models.flow_pose_solver.flow_confidence`). Used to rank candidate start poses."""
+    (poses ``[B,4,4]``, confidence ``[B]`` float64: the network's mean confidence over the rendered
+    cells, :func:`~cosy_lite.models.flow_pose_solver.flow_confidence`). Used to rank candidate start
+    poses. Invalid poses are not run: they keep their value and score :data:`NOT_SCORED`."""
     from cosy_lite.models.flow_pose_net import FlowPoseNet
     from cosy_lite.models.flow_pose_solver import flow_confidence
 
-    poses, scores = [], []
-    for s in range(0, len(TCO), batch_size):
-        sl = slice(s, s + batch_size)
-        inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
+    refined = TCO.clone()
+    score = torch.full((len(TCO),), NOT_SCORED, dtype=torch.float64, device=TCO.device)
+    live = valid_poses(TCO).nonzero().flatten()
+    if not len(live):
+        return refined, score
+    T, ids = TCO, list(obj_ids)
+    if len(live) < len(TCO):  # (all live: no copies, ``images`` may be one image expanded)
+        images, K, points, T = images[live], K[live], points[live], TCO[live]
+        ids = [obj_ids[i] for i in live.tolist()]
+
+    def step(sl: slice) -> tuple[Tensor, Tensor]:
+        inp = make_inputs(images[sl], K[sl], T[sl], ids[sl], points[sl], renderer, crop_resolution)
         out = net(inp.images)
-        poses.append(updated_poses(TCO[sl], inp, out, "flow"))
-        scores.append(flow_confidence(inp.depth, out, FlowPoseNet.stride))
-    if not poses:
-        return TCO, torch.zeros(0, dtype=torch.float64, device=TCO.device)
-    return torch.cat(poses), torch.cat(scores)
+        return updated_poses(T[sl], inp, out, "flow"), flow_confidence(inp.depth, out, FlowPoseNet.stride)
+
+    out = _by_batch(step, len(T), batch_size)
+    refined[live] = torch.cat([o[0] for o in out]).to(refined.dtype)
+    score[live] = torch.cat([o[1] for o in out]).double()
+    return refined, score

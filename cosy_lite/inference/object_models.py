@@ -1,0 +1,101 @@
+"""The objects a predictor estimates: their BOP ``models/`` folder, point table, renderer and templates.
+
+Built once by the predictor's factories (:meth:`~cosy_lite.inference.predictor.Predictor.from_checkpoints`,
+``from_onnx``): :class:`ObjectModels` reads a ``models/`` folder without a dataset;
+:func:`objects_and_renderer` gives the object table, the renderer with the networks' shading and the
+ICP symmetry sets; :func:`start_templates` the silhouette templates of ``start="templates"``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+from cosy_lite.bop import io
+from cosy_lite.errors import BopFormatError, CosyLiteError
+from cosy_lite.model_files.loaders import PoseModel
+from cosy_lite.models.silhouette_templates import SilhouetteTemplates, file_key
+
+
+class SetupError(CosyLiteError):
+    """A predictor that cannot be built or run as asked (missing model, objects not covered); the
+    message names the file."""
+
+
+@dataclass
+class ObjectModels:
+    """The BOP ``models/`` folder of the objects (PLY in mm, ``models_info.json``), read lazily.
+
+    Has what :meth:`cosy_lite.models.object_table.ObjectTable.from_dataset` reads of a dataset
+    (``models_dir``, ``models_info``, ``load_model``), so no dataset folder is needed.
+    """
+
+    models_dir: Path
+
+    def __post_init__(self) -> None:
+        self.models_dir = Path(self.models_dir)
+        if not (self.models_dir / "models_info.json").is_file():
+            raise BopFormatError(self.models_dir / "models_info.json", "", "not found (a BOP models/ folder is needed)")
+
+    @cached_property
+    def models_info(self) -> dict[int, io.ModelInfo]:
+        return io.load_models_info(self.models_dir / "models_info.json")
+
+    @property
+    def obj_ids(self) -> list[int]:
+        return sorted(self.models_info)
+
+    def load_model(self, obj_id: int):
+        """trimesh.Trimesh in metres."""
+        return io.load_model(self.models_dir / f"obj_{int(obj_id):06d}.ply")
+
+
+def object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
+    """The objects' BOP ``models/`` folder: ``models_dir`` or ``dataset``'s (exactly one given)."""
+    from cosy_lite.bop.dataset import BopDataset
+
+    if (models_dir is None) == (dataset is None):
+        raise SetupError("give exactly one of models_dir (a BOP models/ folder) and dataset")
+    if dataset is not None:
+        ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
+        return ObjectModels(ds.models_dir)
+    return ObjectModels(Path(models_dir))
+
+
+def render_shading(coarse: PoseModel | None, refiner: PoseModel | None) -> str:
+    """The renderer shading the pose networks were trained with (SetupError if they differ)."""
+    if coarse is None or refiner is None:
+        model = coarse or refiner
+        if model is None:
+            raise SetupError("no pose model given (a coarse and/or a refiner checkpoint is needed)")
+        return model.render_shading
+    if refiner.render_shading != coarse.render_shading:
+        raise SetupError(f"the coarse model ({coarse.describe()}) was trained on {coarse.render_shading!r} renderings, "
+                         f"the refiner ({refiner.describe()}) on {refiner.render_shading!r}: they need one renderer")
+    return coarse.render_shading
+
+
+def objects_and_renderer(models: ObjectModels, ids: list[int], n_points: int | None, icp: bool,
+                      shading: str = "flat") -> tuple[Any, Any, Any]:
+    """(ObjectTable of ``ids``, a renderer of ``models`` with ``shading``, ICP symmetry sets or None)."""
+    from cosy_lite.geometry.symmetries import symmetry_transforms
+    from cosy_lite.models.object_table import ObjectTable
+    from cosy_lite.render.renderer import PyrenderRenderer
+
+    kwargs = {} if n_points is None else {"n_points": n_points}
+    objects = ObjectTable.from_dataset(models, ids, **kwargs)  # type: ignore[arg-type]
+    syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
+    return objects, PyrenderRenderer(models_dir=models.models_dir, shading=shading), syms
+
+
+def start_templates(start: str, models: ObjectModels, objects: Any, renderer: Any,
+                          cache_dir: str | Path | None) -> SilhouetteTemplates | None:
+    """The templates for ``start="templates"`` (None otherwise), cached in ``cache_dir`` by the hash
+    of each object's mesh file."""
+    if start != "templates":
+        return None
+    keys = {} if cache_dir is None else {i: file_key(models.models_dir / f"obj_{int(i):06d}.ply") for i in objects.obj_ids}
+    return SilhouetteTemplates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
+                               cache_dir=cache_dir, model_keys=keys)
