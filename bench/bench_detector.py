@@ -32,11 +32,12 @@ def bench_checkpoint(path: Path, root: Path, split: str, out_dir: Path | None) -
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.detections import write_detections_json
     from cosy_lite.data.instances import load_rgb
+    from cosy_lite.model_files.checkpoint import load_checkpoint
+    from cosy_lite.model_files.loaders import load_detector
     from cosy_lite.models.detector import detect
-    from cosy_lite.train.checkpoint import load_checkpoint
-    from cosy_lite.train.detector_task import evaluate_detector, load_detector
+    from cosy_lite.train.detector_task import evaluate_detector
 
-    model, _ = load_detector(path)
+    model = load_detector(path)
     step = load_checkpoint(path, kind="detector").step
     dataset = BopDataset(root)
     keys = sorted((r.scene_id, r.im_id) for r in dataset.images(split))

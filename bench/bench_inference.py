@@ -65,9 +65,9 @@ def oracle(ds, rec, keep: list[int]):
 
 def build_predictor(ds, renderer, objects, profile: str, icp: bool, precision: str):
     from cosy_lite.geometry.symmetries import symmetry_transforms
-    from cosy_lite.inference.loaders import PoseModel
     from cosy_lite.inference.predictor import Predictor
-    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+    from cosy_lite.model_files.loaders import PoseModel
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
     backbone, crop = PROFILES[profile]
     models = []
@@ -86,7 +86,7 @@ def time_detector(ds, rgb: np.ndarray, ckpt: Path | None, repeats: int) -> tuple
     from cosy_lite.models.detector import Detector, LabelMap, detect
 
     if ckpt is not None:
-        from cosy_lite.inference.loaders import load_detector
+        from cosy_lite.model_files.loaders import load_detector
 
         model, what = load_detector(ckpt), str(ckpt)
     else:

@@ -37,13 +37,14 @@ def main(argv: list[str] | None = None) -> int:
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.eval.pose_errors import mssd
     from cosy_lite.geometry.symmetries import symmetry_transforms
+    from cosy_lite.model_files.checkpoint import load_checkpoint
+    from cosy_lite.model_files.pose_nets import build_pose_net
     from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
     from cosy_lite.models.object_table import ObjectTable
     from cosy_lite.models.render_and_compare import iterate_poses
     from cosy_lite.render.renderer import PyrenderRenderer
     from cosy_lite.structures import PoseBatch
-    from cosy_lite.train.checkpoint import load_checkpoint
-    from cosy_lite.train.pose_task import build_pose_net, pose_errors
+    from cosy_lite.train.pose_task import pose_errors
 
     ds = BopDataset(args.dataset)
     def load(path, kind):

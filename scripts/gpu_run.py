@@ -152,7 +152,7 @@ class Run:
         self.metrics["cosypose"] = COSYPOSE
 
     def export_weights(self) -> None:
-        from cosy_lite.train.checkpoint import CheckpointError, load_checkpoint, save_weights
+        from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint, save_weights
 
         for model in MODELS:
             src = self.runs / model / "checkpoint.pt"

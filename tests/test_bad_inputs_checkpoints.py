@@ -15,7 +15,7 @@ import pytest
 import torch
 from bop_fixtures import write_tiny_bop
 
-from cosy_lite.train.checkpoint import CHECKPOINT_FORMAT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.model_files.checkpoint import CHECKPOINT_FORMAT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -18,8 +18,8 @@ from cosy_lite.bop.detections import Detections, degenerate_boxes
 from cosy_lite.bop.results import read_results_csv
 from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.bop_run import run_on_split
-from cosy_lite.inference.loaders import PoseModel
 from cosy_lite.inference.predictor import ObjectModels, Predictor, _objects_renderer
+from cosy_lite.model_files.loaders import PoseModel
 
 CROP = (60, 80)
 MAX_DEPTH_M = 10.0  # the fixture's objects are 0.7-0.9 m away

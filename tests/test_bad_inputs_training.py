@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from cosy_lite.errors import ConfigError
-from cosy_lite.train.checkpoint import CheckpointError, load_checkpoint
+from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint
 from cosy_lite.train.loop import LoopConfig, read_log, train
 from cosy_lite.train.schedule import OptimConfig
 from toy_task import ToyTask
@@ -203,7 +203,7 @@ def test_non_finite_loss_is_an_expected_error_naming_the_run(tmp_path):
 
 
 def test_resume_from_a_checkpoint_of_another_model_names_the_file(tmp_path):
-    from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
+    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
 
     _run(tmp_path, steps=5)
     ck = load_checkpoint(tmp_path / "checkpoint.pt")

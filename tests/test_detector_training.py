@@ -12,9 +12,10 @@ import torch
 
 from cosy_lite.bop import io
 from cosy_lite.config import load_config
+from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.model_files.loaders import load_detector
 from cosy_lite.models.detector import Detector, detect
-from cosy_lite.train.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
-from cosy_lite.train.detector_task import DetectorTask, DetectorTrainConfig, load_detector
+from cosy_lite.train.detector_task import DetectorTask, DetectorTrainConfig
 from cosy_lite.train.loop import train
 
 # 640x480 images scaled to 96x128, narrow heads, few proposals: a step takes ~0.1 s.
@@ -80,8 +81,8 @@ def test_few_steps_through_the_loop_lower_the_loss_and_checkpoint_reloads(tiny_s
     ckpt = load_checkpoint(tmp_path / "checkpoint.pt", kind="detector")
     assert ckpt.meta["label_map"] == {"obj_ids": [1, 2, 5, 8]} and ckpt.meta["dataset"] == "tiny"
     assert ckpt.meta["detector_config"]["min_size"] == 96 and ckpt.config["loop"]["steps"] == 12
-    detector, label_map = load_detector(tmp_path / "checkpoint.pt")
-    assert isinstance(detector, Detector) and not detector.training and label_map.obj_ids == (1, 2, 5, 8)
+    detector = load_detector(tmp_path / "checkpoint.pt")
+    assert isinstance(detector, Detector) and not detector.training and detector.label_map.obj_ids == (1, 2, 5, 8)
     for k, v in detector.state_dict().items():
         torch.testing.assert_close(v, ckpt.model[k], rtol=0, atol=0)
 
@@ -102,8 +103,7 @@ def test_bad_checkpoints_name_the_file_and_the_problem(tmp_path):
     det = Detector(LabelMap((1, 2)), cfg.detector)
     good = Checkpoint(kind="detector", model=det.state_dict(), config={}, step=1, meta=det.meta())
     save_checkpoint(tmp_path / "good.pt", good)
-    loaded, lm = load_detector(tmp_path / "good.pt")
-    assert lm.obj_ids == (1, 2)
+    assert load_detector(tmp_path / "good.pt").label_map.obj_ids == (1, 2)
 
     (tmp_path / "cut.pt").write_bytes((tmp_path / "good.pt").read_bytes()[:1000])
     with pytest.raises(CheckpointError, match=r"cut\.pt: not a readable checkpoint"):

@@ -22,7 +22,7 @@ onnx = pytest.importorskip("onnx")
 from cosy_lite.export.manifest import Manifest, OnnxModelError  # noqa: E402
 from cosy_lite.export.onnx_export import export_detector, export_pose_net  # noqa: E402
 from cosy_lite.export.onnx_models import OnnxDetector, OnnxPoseNet  # noqa: E402
-from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
+from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
 
 OBJ_IDS = [1, 2, 5, 8]  # the tiny synthetic dataset's objects
 CROP = (48, 64)
@@ -33,7 +33,7 @@ DETECTOR = dict(name="maskrcnn_mobilenet_v3_large_fpn", fpn_channels=32, mask_he
 
 def _pose_net(seed: int, head_std: float = 0.01) -> nn.Module:
     """A resnet18 PoseNet with a random head and BatchNorm statistics (a fresh one outputs zeros)."""
-    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
     torch.manual_seed(seed)
     net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=list(CROP))).eval()
@@ -47,7 +47,7 @@ def _pose_net(seed: int, head_std: float = 0.01) -> nn.Module:
 
 
 def _save_pose_ckpt(path: Path, kind: str, seed: int, obj_ids=OBJ_IDS, head_std: float = 0.01) -> Path:
-    from cosy_lite.train.pose_task import PoseNetConfig
+    from cosy_lite.model_files.pose_nets import PoseNetConfig
 
     cfg = PoseNetConfig(backbone="resnet18", crop_resolution=list(CROP))
     meta = {"obj_ids": list(obj_ids), "net": asdict(cfg), "dataset": "tiny", "model": kind}
@@ -175,7 +175,7 @@ def test_detector_matches_torch(tmp_path):
 
 
 def test_manifest_and_metadata_round_trip(export):
-    from cosy_lite.inference.loaders import load_onnx_models
+    from cosy_lite.export.onnx_models import load_onnx_models
 
     manifest = Manifest.read(export["models"])
     assert set(manifest.models) == {"detector", "coarse", "refiner", "coarse.int8", "refiner.int8"}
@@ -203,7 +203,7 @@ def test_manifest_and_metadata_round_trip(export):
 
 
 def test_broken_files_give_errors_naming_file_and_field(export, tmp_path):
-    from cosy_lite.inference.loaders import load_onnx_models
+    from cosy_lite.export.onnx_models import load_onnx_models
 
     def error(root: Path, **kwargs) -> OnnxModelError:
         with pytest.raises(OnnxModelError) as e:
@@ -249,7 +249,7 @@ def test_broken_files_give_errors_naming_file_and_field(export, tmp_path):
 
 
 def test_mismatched_manifest_gives_errors_naming_file_and_field(export, tmp_path):
-    from cosy_lite.inference.loaders import load_onnx_models
+    from cosy_lite.export.onnx_models import load_onnx_models
 
     def edited(name: str, edit) -> Path:
         root = _copy_export(export["models"], tmp_path / name)
@@ -368,7 +368,7 @@ def test_flow_refiner_exports_and_gives_the_torch_poses(tiny_synth_root, tmp_pat
     random flow network's field is rough, so the solver amplifies the ~1e-6 network differences)."""
     import infer
     from cosy_lite.bop.results import read_results_csv
-    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
     cfg = PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[48, 64], corr_radius=2, width=16)
     torch.manual_seed(3)

@@ -18,18 +18,18 @@ from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.results import HEADER, read_results_csv
 from cosy_lite.inference.bop_run import run_on_split
-from cosy_lite.inference.loaders import PoseModel
 from cosy_lite.inference.predictor import TIMING_KEYS, Predictor
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
+from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
+from cosy_lite.model_files.loaders import PoseModel
 from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
-from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
 
 OBJ_IDS = [1, 2, 5, 8]
 CROP = [60, 80]
 
 
 def _save_pose_ckpt(path: Path, kind: str, obj_ids=OBJ_IDS) -> Path:
-    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
     torch.manual_seed(0)
     cfg = PoseNetConfig(backbone="resnet18", crop_resolution=CROP)
@@ -289,7 +289,7 @@ def test_the_detector_feeds_predict_and_the_vivo_run(tiny_synth_root, ckpts, tmp
 
 def test_inference_net_folds_batchnorm_without_changing_outputs():
     from cosy_lite.inference.predictor import inference_net
-    from cosy_lite.train.pose_task import PoseNetConfig, build_pose_net
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
     torch.manual_seed(0)
     net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=CROP)).eval()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from cosy_lite.config import load_config
-from cosy_lite.train.checkpoint import load_checkpoint
+from cosy_lite.model_files.checkpoint import load_checkpoint
 from cosy_lite.train.loop import train
 from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
 

@@ -26,8 +26,8 @@ from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from
 def setup(tiny_synth_root, tmp_path_factory) -> dict:
     """Checkpoints, an export folder, one test image with its camera file and GT-box detections."""
     from cosy_lite.export.onnx_export import export_models
+    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
     from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap
-    from cosy_lite.train.checkpoint import Checkpoint, save_checkpoint
 
     d = tmp_path_factory.mktemp("predict")
     torch.manual_seed(0)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cosy_lite.train.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from cosy_lite.train.loop import LoopConfig, train
 from cosy_lite.train.sampler import StepBatchSampler
 from cosy_lite.train.schedule import OptimConfig, budget_factor, lr_factor

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from cosy_lite.train.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, load_weights, save_checkpoint,
+from cosy_lite.model_files.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, load_weights, save_checkpoint,
                                         save_weights)
 
 

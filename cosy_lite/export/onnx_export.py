@@ -164,8 +164,8 @@ def _run_once(path: Path, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
 
 
 def _pose_net_from_checkpoint(path: Path, kind: str) -> tuple[nn.Module, tuple[int, int], list[int], dict[str, Any]]:
-    from cosy_lite.inference.loaders import load_pose_model
-    from cosy_lite.train.checkpoint import load_checkpoint
+    from cosy_lite.model_files.checkpoint import load_checkpoint
+    from cosy_lite.model_files.loaders import load_pose_model
 
     model = load_pose_model(path, kind)
     ckpt = load_checkpoint(path, kind=kind)
@@ -183,7 +183,7 @@ def export_models(out_dir: str | Path, detector: str | Path | None = None, coars
     weights-only) or of the wrong kind; every checkpoint is checked before a file is written.
     """
     from cosy_lite.export.quantize import QUANTIZERS
-    from cosy_lite.inference.loaders import load_detector
+    from cosy_lite.model_files.loaders import load_detector
 
     if detector is None and coarse is None and refiner is None:
         raise ValueError("nothing to export: give at least one of detector, coarse, refiner")

@@ -5,6 +5,9 @@
   drops into :func:`~cosy_lite.models.render_and_compare.iterate_poses`).
 - :class:`OnnxDetector`: ``rgb [H,W,3]`` uint8 -> boxes, obj_ids, scores, masks (numpy,
   :meth:`~OnnxDetector.run`) or :class:`~cosy_lite.bop.detections.Detections` (:meth:`~OnnxDetector.detect`).
+- :func:`load_onnx_models`: an export folder (``manifest.json`` + ``.onnx`` files) -> these
+  sessions, the pose networks as :class:`~cosy_lite.model_files.loaders.PoseModel` (precision fp32
+  or int8), in :class:`OnnxModels`.
 
 The sessions themselves need only numpy and onnxruntime (torch is imported only to wrap tensors).
 Sessions run with every graph optimisation on, ``threads`` intra-op threads, denormals flushed to
@@ -19,16 +22,20 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
 from cosy_lite.export.manifest import (
-    POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, ModelEntry, OnnxModelError, parse_json_meta,
+    POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, Manifest, ModelEntry, OnnxModelError, parse_json_meta,
 )
 from cosy_lite.models.detection_masks import binary_masks
 from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE
+
+if TYPE_CHECKING:
+    from cosy_lite.model_files.loaders import PoseModel
 
 PROVIDERS = ("CPUExecutionProvider",)
 POSE_OUTPUTS = 9
@@ -222,3 +229,62 @@ class OnnxDetector:
 
     def describe(self) -> str:
         return str(self.path)
+
+
+# precision -> suffix of the manifest entry names of the pose networks
+ONNX_PRECISIONS: dict[str, str] = {"fp32": "", "int8": ".int8"}
+
+
+@dataclass
+class OnnxModels:
+    """The networks of an export folder in onnxruntime; detector/refiner None when not exported
+    (or not asked for)."""
+
+    coarse: PoseModel | None  # None: only start="templates" works
+    refiner: PoseModel | None
+    detector: OnnxDetector | None
+    manifest: Manifest
+
+
+def load_onnx_models(root: str | Path, threads: int | None = None, precision: str = "fp32",
+                     detector: bool = True, spinning: bool = False) -> OnnxModels:
+    """The networks of the export folder ``root`` (``cosy-lite export --out root``), as the
+    :class:`~cosy_lite.model_files.loaders.PoseModel` the predictor takes (``net``: an
+    :class:`OnnxPoseNet`) and an :class:`OnnxDetector`.
+
+    Args:
+        threads: intra-op threads of each session (None: onnxruntime's default).
+        precision: "fp32", or "int8" for the quantised pose networks (``--quantize int8`` exports).
+        detector: load ``detector.onnx`` when the folder has one.
+    Raises OnnxModelError naming the file and field: no manifest, a listed file missing, truncated
+    or replaced, not loadable, or its metadata not matching the manifest (kind, obj_ids, crop size,
+    6 input channels); no pose model at all.
+    """
+    from cosy_lite.model_files.loaders import PoseModel  # torch behind it: not needed by the sessions
+
+    if precision not in ONNX_PRECISIONS:
+        raise ValueError(f"precision must be one of {sorted(ONNX_PRECISIONS)} for ONNX models, got {precision!r}")
+    manifest = Manifest.read(root)
+    pose: dict[str, PoseModel | None] = {}
+    for role in POSE_KINDS:
+        name = role + ONNX_PRECISIONS[precision]
+        if manifest.entry(name) is None:
+            if manifest.entry(role) is not None:  # fp32 exported, the asked precision not
+                raise OnnxModelError(manifest.path, f"models.{name}", f"not exported (found models.{role} only): "
+                                     f"export with --quantize {precision}, or use precision fp32")
+            pose[role] = None
+            continue
+        entry = manifest.models[name]
+        if entry.kind != role:
+            raise OnnxModelError(manifest.path, f"models.{name}.kind", f"{entry.kind!r}, expected {role!r}")
+        net = OnnxPoseNet(manifest.file(name), threads, role, entry, name, spinning)
+        pose[role] = PoseModel(net, role, net.crop_resolution, net.obj_ids, net.path,
+                               str(net.config.get("render_shading", "flat")),
+                               "flow" if net.config.get("arch") == "flow" else "delta")
+    if pose["coarse"] is None and pose["refiner"] is None:
+        raise OnnxModelError(manifest.path, "models", "the export has no pose model (coarse or refiner; "
+                             f"it has {sorted(manifest.models)})")
+    det = None
+    if detector and manifest.entry("detector") is not None:
+        det = OnnxDetector(manifest.file("detector"), threads, manifest.models["detector"], "detector", spinning)
+    return OnnxModels(pose["coarse"], pose["refiner"], det, manifest)

@@ -28,9 +28,9 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256, n
     from tqdm import tqdm
 
     from cosy_lite.bop.dataset import BopDataset
-    from cosy_lite.errors import CosyLiteError
     from cosy_lite.data.pose_dataset import PoseDataset
-    from cosy_lite.inference.loaders import load_pose_model
+    from cosy_lite.errors import CosyLiteError
+    from cosy_lite.model_files.loaders import load_pose_model
     from cosy_lite.models.initial_pose import add_pose_noise
     from cosy_lite.models.object_table import ObjectTable
     from cosy_lite.models.render_and_compare import iterate_poses

@@ -11,11 +11,10 @@ resumed run repeats the uninterrupted one.
 
 Validation: COCO box AP / AP50 / mask AP (pycocotools, :mod:`cosy_lite.eval.detection`) of the
 held-out images. Checkpoints store the detector config and the obj_id label map
-(``meta["detector_config"]``, ``meta["label_map"]``); :func:`load_detector` rebuilds the module.
+(``meta["detector_config"]``, ``meta["label_map"]``);
+:func:`cosy_lite.model_files.loaders.load_detector` rebuilds the module::
 
-Inference API::
-
-    detector, label_map = load_detector("runs/ycbvsynth-detector/checkpoint.pt")
+    detector = load_detector("runs/ycbvsynth-detector/checkpoint.pt")  # detector.label_map: obj_ids
     dets = detect(detector, [image])  # image: [3,H,W] float in [0,1]; -> [Detections] (obj_ids, boxes px, masks)
 """
 
@@ -36,13 +35,13 @@ from cosy_lite.bop.detections import Detections, ImageKey
 from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
 from cosy_lite.data.detection_dataset import DetectionDataset
 from cosy_lite.data.instances import hold_out_images, load_masks
+from cosy_lite.model_files.loaders import DETECTOR_KIND
 from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap, detect, detector_losses
 from cosy_lite.structures import DetectionBatch, DetectionSample
-from cosy_lite.train.checkpoint import CheckpointError, load_checkpoint
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
 
-KIND = "detector"
+KIND = DETECTOR_KIND
 
 
 @dataclass
@@ -143,28 +142,7 @@ def augment_images(augment: StrongAugmentation, images: list[Tensor], masks_any:
     return out  # type: ignore[return-value]
 
 
-# ----------------------------------------------------------------------------- inference helpers
-
-
-def load_detector(path: str | Path, device: torch.device | str = "cpu") -> tuple[Detector, LabelMap]:
-    """The trained :class:`Detector` of a checkpoint (eval mode, on ``device``) and its label map.
-
-    Raises CheckpointError naming the file when it is not a detector checkpoint, lacks the
-    detector config / label map, or its weights do not fit the architecture they describe.
-    """
-    ckpt = load_checkpoint(path, kind=KIND)
-    missing = [k for k in ("detector_config", "label_map") if k not in ckpt.meta]
-    if missing:
-        raise CheckpointError(path, f"field 'meta' lacks {missing} (needed to rebuild the detector)")
-    try:
-        model = Detector.from_meta(ckpt.meta)
-    except (TypeError, ValueError) as e:
-        raise CheckpointError(path, f"field 'meta' does not describe a detector ({e})") from None
-    try:
-        model.load_state_dict(ckpt.model)
-    except RuntimeError as e:
-        raise CheckpointError(path, f"field 'model' does not fit the detector of 'meta' ({str(e).splitlines()[0]})") from None
-    return model.to(device).eval(), model.label_map
+# ----------------------------------------------------------------------------- evaluation
 
 
 def run_detector(model: Detector, dataset: BopDataset, split: str, keys: Iterable[ImageKey], batch_size: int = 1,
@@ -238,7 +216,8 @@ class DetectorTask:
         return collate_train(items)
 
     def checkpoint_meta(self) -> dict[str, Any]:
-        """What :func:`load_detector` needs (same keys as :meth:`Detector.meta`) + the dataset name."""
+        """What :func:`~cosy_lite.model_files.loaders.load_detector` needs (same keys as
+        :meth:`Detector.meta`) + the dataset name."""
         return {"detector_config": asdict(self.cfg.detector), "label_map": self.label_map.to_dict(),
                 "dataset": self.cfg.dataset, "split": self.cfg.data.split}
 

@@ -31,7 +31,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from cosy_lite.errors import ConfigError, CosyLiteError
-from cosy_lite.train.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, remove_stale_temporaries,
+from cosy_lite.model_files.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, remove_stale_temporaries,
                                         save_checkpoint)
 from cosy_lite.train.distributed import DistInfo, all_reduce_mean, barrier, init_distributed, shutdown_distributed
 from cosy_lite.train.sampler import StepBatchSampler

@@ -184,7 +184,7 @@ def main():
         return o, TCO
 
     def refine(TCO):
-        from cosy_lite.inference.loaders import load_pose_model
+        from cosy_lite.model_files.loaders import load_pose_model
         from cosy_lite.models.render_and_compare import iterate_poses
         from cosy_lite.render.renderer import PyrenderRenderer
 

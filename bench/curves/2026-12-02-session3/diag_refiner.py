@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(1, str(Path(__file__).parents[1] / "2026-12-01"))  # ramdata.py (the RAM cache of train_pbr)
 from ramdata import RamBatcher, load_split, make_split  # noqa: E402
 
-from cosy_lite.inference.loaders import load_pose_model  # noqa: E402
+from cosy_lite.model_files.loaders import load_pose_model  # noqa: E402
 from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes  # noqa: E402
 from cosy_lite.models.object_table import ObjectTable  # noqa: E402
 from cosy_lite.models.render_and_compare import iterate_poses  # noqa: E402
@@ -68,7 +68,7 @@ def main():
                     sub = type(e)(*(x[:n_sub] for x in (e.rot_deg, e.trans_m, e.adds_m, e.mssd_m)))
                     report[f"{name}/{k}/first{n_sub}"] = sub.summary(diam[:n_sub], "")
                     print("   first", n_sub, {a: round(b, 3) for a, b in report[f"{name}/{k}/first{n_sub}"].items()})
-    from cosy_lite.train.checkpoint import load_checkpoint
+    from cosy_lite.model_files.checkpoint import load_checkpoint
     report["step"] = load_checkpoint(Path(args.ckpt), kind="refiner").step
     if args.out:
         Path(args.out).write_text(json.dumps(report, indent=1))

@@ -153,7 +153,7 @@ def main():
     rep["templates_s"], rep["match_s_per_instance"] = t_tmpl, t_match / B
     print({k: round(v, 3) for k, v in rep.items()}, flush=True)
     if args.refiner:
-        from cosy_lite.inference.loaders import load_pose_model
+        from cosy_lite.model_files.loaders import load_pose_model
         from cosy_lite.models.render_and_compare import iterate_poses
 
         model = load_pose_model(args.refiner, "refiner")

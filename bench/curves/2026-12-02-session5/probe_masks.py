@@ -9,7 +9,7 @@ import torch
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections
 from cosy_lite.eval.detection import evaluate_detections
-from cosy_lite.inference.loaders import load_detector
+from cosy_lite.model_files.loaders import load_detector
 
 root, ckpt = sys.argv[1], sys.argv[2]
 torch.set_num_threads(1)

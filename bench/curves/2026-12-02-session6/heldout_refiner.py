@@ -17,12 +17,12 @@ from ramdata import RamBatcher, make_split  # noqa: E402
 from cosy_lite.bop.dataset import BopDataset  # noqa: E402
 from cosy_lite.data.instances import load_rgb  # noqa: E402
 from cosy_lite.data.pose_dataset import PoseDataset  # noqa: E402
-from cosy_lite.inference.loaders import load_pose_model  # noqa: E402
+from cosy_lite.model_files.checkpoint import load_checkpoint  # noqa: E402
+from cosy_lite.model_files.loaders import load_pose_model  # noqa: E402
 from cosy_lite.models.initial_pose import add_pose_noise  # noqa: E402
 from cosy_lite.models.object_table import ObjectTable  # noqa: E402
 from cosy_lite.models.render_and_compare import iterate_poses  # noqa: E402
 from cosy_lite.render.renderer import PyrenderRenderer  # noqa: E402
-from cosy_lite.train.checkpoint import load_checkpoint  # noqa: E402
 from cosy_lite.train.pose_task import pose_errors  # noqa: E402
 
 

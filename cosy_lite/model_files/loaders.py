@@ -1,0 +1,108 @@
+"""Trained models from checkpoint files, ready for inference (eval mode, on a device).
+
+Pose networks: :func:`load_pose_model` (``kind`` "coarse" or "refiner", written by
+:class:`cosy_lite.train.pose_task.PoseTask`: ``meta = {"obj_ids", "net", "dataset", "model"}``;
+older files keep ``net`` and ``obj_ids`` in their training config, and are read from there).
+Detector: :func:`load_detector` (``kind`` "detector", written by
+:class:`cosy_lite.train.detector_task.DetectorTask`: ``meta = {"detector_config", "label_map", ...}``).
+Every problem raises :class:`~cosy_lite.model_files.checkpoint.CheckpointError` naming the file.
+Exported networks (onnxruntime) are read by :func:`cosy_lite.export.onnx_models.load_onnx_models`
+into the same :class:`PoseModel`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint
+
+if TYPE_CHECKING:
+    import torch
+    from torch import nn
+
+    from cosy_lite.models.detector import Detector
+
+Size = tuple[int, int]
+DETECTOR_KIND = "detector"
+
+
+@dataclass
+class PoseModel:
+    """A pose network (coarse or refiner) and what it was trained for.
+
+    net: the :class:`~cosy_lite.models.pose_net.PoseNet` (eval mode), or any callable
+    ``[B,6,h,w] -> [B,9]`` tensor function such as an
+    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet` (nets with a numpy ``run``, as that one, make
+    the Predictor iterate in numpy: :mod:`~cosy_lite.inference.iterate_np`); crop_resolution: (h, w) px of its input
+    crops; obj_ids: objects it was trained on; path: the checkpoint or ``.onnx`` file (None if
+    built in code).
+    """
+
+    net: nn.Module | Callable[[torch.Tensor], torch.Tensor]
+    kind: str
+    crop_resolution: Size
+    obj_ids: list[int]
+    path: Path | None = None
+    render_shading: str = "flat"  # how its renderings were made in training (PoseNetConfig.render_shading)
+    output: str = "delta"  # what the net returns: 9-number updates, or a "flow" field (render_and_compare)
+
+    def describe(self) -> str:
+        return str(self.path) if self.path is not None else f"{self.kind} model (built in code)"
+
+
+def _meta_field(ckpt: Checkpoint, path: Path, name: str) -> Any:
+    if name in ckpt.meta:
+        return ckpt.meta[name]
+    if name in ckpt.config:  # older files: the training config holds it
+        return ckpt.config[name]
+    raise CheckpointError(path, f"field 'meta.{name}' missing (needed to rebuild the {ckpt.kind} model)")
+
+
+def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "cpu") -> PoseModel:
+    """The ``kind`` ("coarse" | "refiner") network of the checkpoint at ``path``, in eval mode on ``device``."""
+    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.models.render_and_compare import network_output
+
+    path = Path(path)
+    ckpt = load_checkpoint(path, kind=kind)
+    net_cfg = _meta_field(ckpt, path, "net")
+    obj_ids = _meta_field(ckpt, path, "obj_ids")
+    try:
+        cfg = PoseNetConfig(**net_cfg)
+        net = build_pose_net(cfg, kind, load_weights=False)
+        net.load_state_dict(ckpt.model)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(path, f"weights do not fit the network of meta.net {net_cfg} "
+                                    f"({type(e).__name__}: {e})") from None
+    h, w = (int(v) for v in cfg.crop_resolution)
+    if not obj_ids:
+        raise CheckpointError(path, "field 'meta.obj_ids' is empty")
+    shading = str(net_cfg.get("render_shading", "flat"))  # files from before shading existed: flat renderings
+    return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, shading,
+                     network_output(net))
+
+
+def load_detector(path: str | Path, device: str | torch.device = "cpu") -> Detector:
+    """The trained :class:`~cosy_lite.models.detector.Detector` of the checkpoint at ``path`` (eval
+    mode, on ``device``); its obj_id label map is ``.label_map``.
+
+    Raises CheckpointError naming the file when it is not a detector checkpoint, lacks the
+    detector config / label map, or its weights do not fit the architecture they describe.
+    """
+    from cosy_lite.models.detector import Detector
+
+    ckpt = load_checkpoint(path, kind=DETECTOR_KIND)
+    missing = [k for k in ("detector_config", "label_map") if k not in ckpt.meta]
+    if missing:
+        raise CheckpointError(path, f"field 'meta' lacks {missing} (needed to rebuild the detector)")
+    try:
+        model = Detector.from_meta(ckpt.meta)
+    except (TypeError, ValueError) as e:
+        raise CheckpointError(path, f"field 'meta' does not describe a detector ({e})") from None
+    try:
+        model.load_state_dict(ckpt.model)
+    except RuntimeError as e:
+        raise CheckpointError(path, f"field 'model' does not fit the detector of 'meta' ({str(e).splitlines()[0]})") from None
+    return model.to(device).eval()
