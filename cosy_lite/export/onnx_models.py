@@ -32,7 +32,7 @@ from cosy_lite.export.manifest import (
     POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, Manifest, ModelEntry, OnnxModelError, parse_json_meta,
 )
 from cosy_lite.models.detection_masks import binary_masks
-from cosy_lite.models.flow_pose_solver_np import FLOW_STRIDE
+from cosy_lite.models.flow_pose_solver import FLOW_STRIDE
 
 if TYPE_CHECKING:
     from cosy_lite.model_files.loaders import PoseModel
