@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from cosy_lite.render.gl import camera_node_pose, intrinsics_camera, pyrender_module
+from cosy_lite.render.pyrender_scene import OffscreenSceneRenderer, camera_node_pose, intrinsics_camera, pyrender_module
 from cosy_lite.synth.textures import random_texture
 
 
@@ -59,12 +59,12 @@ def _random_colour(rng: np.random.Generator, saturation: float) -> np.ndarray:
 
 
 class SceneRenderer:
-    """Offscreen renderer reused across scenes (one GL context; object meshes uploaded once)."""
+    """Offscreen renderer reused across scenes (one GL context of the project's stack; object meshes
+    uploaded once)."""
 
     def __init__(self, width: int, height: int):
-        pyrender = pyrender_module()
         self.width, self.height = width, height
-        self._renderer = pyrender.OffscreenRenderer(width, height)
+        self._renderer = OffscreenSceneRenderer(width, height)
         self._meshes: dict[str, object] = {}
 
     def _pyrender_mesh(self, key: str, mesh: trimesh.Trimesh):
@@ -138,4 +138,4 @@ class SceneRenderer:
             scene.add(pyrender.Mesh.from_trimesh(wall), pose=T)
 
     def delete(self) -> None:
-        self._renderer.delete()
+        self._renderer.close()
