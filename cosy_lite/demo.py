@@ -6,7 +6,7 @@ shipped reference models, :mod:`cosy_lite.inference.reference_models`):
 
 1. generate the dataset's ``test`` split and a small part of ``train_pbr``
    (:attr:`DemoConfig.short_train_images`) if absent, and validate it;
-2. infer on the test split with the reference models (``infer.py --pretrained NAME``: detector ->
+2. infer on the test split with the reference models (``cosy-lite infer --pretrained NAME``: detector ->
    silhouette templates -> refiner -> depth ICP), and the same with oracle (ground-truth) masks, so
    detector and pose errors can be told apart; each run also writes its poses before ICP (the
    RGB-only results: ``--also-before-icp``); the two runs side by side, one core each;
@@ -20,6 +20,15 @@ With ``train=True`` (``cosy-lite demo --train``, ``make train``; datasets withou
 models) step 4 is the demo profile's full from-scratch training instead (the whole dataset is
 generated; detector, then refiner on both cores, :attr:`DemoConfig.train_minutes`; with
 ``start="coarse"`` the coarse network beside the refiner) and step 2 uses those networks.
+
+With ``quick=True`` (``cosy-lite demo --quick``) every step runs at toy size (:data:`QUICK`: two test
+images, a few training images, two training steps per network, validation on two images), into
+folders of its own (``data/quick``, ``runs/demo-quick``, ``outputs/quick``): a smoke test of an
+installation (a few minutes on 2 cores) whose numbers mean nothing.
+
+Each step runs ``python -m cosy_lite.cli COMMAND`` with this interpreter (``torchrun -m cosy_lite.cli
+train`` for DDP): the demo needs the installed package only, not a source checkout, and works in any
+folder (relative paths are the current folder's).
 """
 
 from __future__ import annotations
@@ -33,7 +42,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
 MODELS = ("detector", "coarse", "refiner")
 METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_mspd"}  # column -> scores.json key
 MSSD_RECALL = "MSSD recall 0.1 d"
@@ -47,11 +55,22 @@ SHORT_OVERRIDES = {"detector": ["optim.warmup_steps=10", "loop.val_every=1000", 
                    "coarse": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10", "data.val_instances=32"],
                    "refiner": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10", "data.val_instances=32",
                                "val_iterations=1"]}
+# --quick (a smoke test: its numbers say nothing about the method): its own folders, 2 test images and
+# 8 training images of 4 objects each (one layout per split), overlays of 1 image, and ...
+QUICK = {"data_root": Path("data") / "quick", "runs": Path("runs") / "demo-quick", "out": Path("outputs") / "quick",
+         "short_train_images": 8, "vis": 1}
+QUICK_GENERATE = ["test.n_images=2", "test.views_per_layout=2", f"train.views_per_layout={QUICK['short_train_images']}",
+                  "objects_per_layout=[4,4]", "distractors_per_layout=[0,1]"]
+# ... 2 training steps of batch 2 per network, validated on 2 images (after the demo's own overrides: these win)
+QUICK_TRAIN = ["loop.steps=2", "loop.batch_size=2", "loop.log_every=1", "data.val_images=2"]
+QUICK_OVERRIDES = {"detector": QUICK_TRAIN, "coarse": [*QUICK_TRAIN, "data.val_instances=4"],
+                   "refiner": [*QUICK_TRAIN, "data.val_instances=4"]}
+CLI = ("-m", "cosy_lite.cli")  # how the demo runs each step: this interpreter, the installed package
 
 
 @dataclass
 class InferRun:
-    """One ``infer.py`` run of the demo: its method name (CSV prefix) and extra arguments;
+    """One ``cosy-lite infer`` run of the demo: its method name (CSV prefix) and extra arguments;
     before_icp: (method, label) of the same run's poses before ICP (``--also-before-icp``)."""
 
     method: str
@@ -63,9 +82,9 @@ class InferRun:
 @dataclass
 class DemoConfig:
     dataset: str = "ycbvsynth"
-    data_root: Path = REPO / "data"
-    runs: Path = REPO / "runs" / "demo"
-    out: Path = REPO / "outputs"
+    data_root: Path = Path("data")
+    runs: Path = Path("runs") / "demo"
+    out: Path = Path("outputs")
     train: bool = False  # train the networks from scratch instead of using the reference models
     pretrained: str | None = None  # reference models (default: the dataset's, when shipped)
     # train=True: the detector's profile's 1200 steps would take 17.5-21 min on the 2-core machine (0.95-1.15
@@ -78,10 +97,11 @@ class DemoConfig:
     short_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 1.0, "coarse": 1.0, "refiner": 1.0})
     short_train_images: int = 100  # train_pbr images generated for them when the dataset is absent
     n_refiner_iters: int = 4
-    start: str = "templates"  # infer.py --start: "templates" (no coarse network) or "coarse"
-    n_candidates: int = 5  # infer.py --candidates (start="templates")
+    start: str = "templates"  # cosy-lite infer --start: "templates" (no coarse network) or "coarse"
+    n_candidates: int = 5  # cosy-lite infer --candidates (start="templates")
     vis: int = 4
     threads: int = 2
+    quick: bool = False  # every step at toy size (QUICK, QUICK_GENERATE, QUICK_OVERRIDES), a smoke test
 
     @property
     def reference(self) -> str | None:
@@ -103,7 +123,7 @@ def trained_models(cfg: DemoConfig) -> tuple[str, ...]:
 
 
 def model_args(cfg: DemoConfig) -> list[str]:
-    """infer.py's networks and start: the reference models, or the demo's trained checkpoints."""
+    """cosy-lite infer's networks and start: the reference models, or the demo's trained checkpoints."""
     if cfg.reference is not None:
         return ["--pretrained", cfg.reference, "--templates-cache", str(cfg.runs / "templates")]
     start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
@@ -148,7 +168,7 @@ def _csv(cfg: DemoConfig, method: str) -> Path:
 def _run(cmd: list[str], what: str, env: dict[str, str] | None = None) -> None:
     print(f"\n=== {what}\n$ {' '.join(cmd)}", flush=True)
     t = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=REPO, env=None if env is None else {**os.environ, **env})
+    proc = subprocess.run(cmd, env=None if env is None else {**os.environ, **env})
     if proc.returncode != 0:
         raise SystemExit(f"demo: step '{what}' failed (exit {proc.returncode}); fix it and re-run: finished steps are skipped")
     print(f"=== {what}: {time.perf_counter() - t:.0f} s", flush=True)
@@ -158,39 +178,51 @@ def _py(*args: str) -> list[str]:
     return [sys.executable, *args]
 
 
+def _cli(*args: str) -> list[str]:
+    """``python -m cosy_lite.cli ARGS``: a cosy-lite command of the package this demo runs from."""
+    return _py(*CLI, *args)
+
+
 def _train_images(root: Path) -> int:
     """Images of the generated ``train_pbr`` scenes (0 without any)."""
     return sum(len(json.loads(p.read_text())) for p in root.glob("train_pbr/*/scene_gt_info.json"))
 
 
-def _full_train_images(synth_cfg: Path) -> int:
+def _full_train_images(cfg: DemoConfig, synth_cfg: Path) -> int:
+    """``train_pbr`` images the from-scratch training wants: the dataset config's (quick: a few)."""
     from cosy_lite.config import load_config
     from cosy_lite.synth.generator import SynthConfig
 
+    if cfg.quick:
+        return cfg.short_train_images
     return load_config(SynthConfig, synth_cfg if synth_cfg.is_file() else None).split_config("train_pbr").n_images
 
 
 def prepare_dataset(cfg: DemoConfig) -> Path:
     """Generate what is missing (the test split; ``train_pbr``: all of it when training from scratch, else
     :attr:`DemoConfig.short_train_images` images, enough for the short runs) and validate the dataset."""
+    from cosy_lite.config import packaged_config
+
     root = cfg.data_root / cfg.dataset
-    synth_cfg = REPO / "configs" / "synth" / f"{cfg.dataset}.yaml"
+    synth_cfg = packaged_config("synth", f"{cfg.dataset}.yaml")
     extra = ["--config", str(synth_cfg)] if synth_cfg.is_file() else []
-    generate = _py("-m", "cosy_lite.cli", "generate", "--out", str(root), "--workers", "2", *extra)
+    if cfg.quick:
+        extra += QUICK_GENERATE
+    generate = _cli("generate", "--out", str(root), "--workers", "2", *extra)
     has_test = (root / "test_targets_bop19.json").is_file()
     n_train = _train_images(root)
-    if cfg.reference is None and not (has_test and n_train >= _full_train_images(synth_cfg)):
-        _run(generate, "generate the dataset")
+    if cfg.reference is None and not (has_test and n_train >= _full_train_images(cfg, synth_cfg)):
+        _run(generate + ([f"train.n_images={cfg.short_train_images}"] if cfg.quick else []), "generate the dataset")
     elif not has_test or not n_train:
         splits = (["test"] if not has_test else []) + (["train_pbr"] if not n_train else [])
         _run(generate + [f"train.n_images={cfg.short_train_images}", "--splits", *splits],
              f"generate the dataset ({', '.join(splits)}; train_pbr: {cfg.short_train_images} images for the short runs)")
-    _run(_py("-m", "cosy_lite.cli", "check-dataset", str(root)), "validate the dataset")
+    _run(_cli("check-dataset", str(root)), "validate the dataset")
     pictures = {"show": (cfg.out / "demo_show_test_000000_000000.png", ["--split", "test", "--scene", "0", "--image", "0"]),
                 "contact-sheet": (cfg.out / "demo_contact_sheet.png", ["--split", "train_pbr", "-n", "16"])}
     for command, (png, args) in pictures.items():
         if not png.is_file():
-            _run(_py("-m", "cosy_lite.cli", command, str(root), *args, "--out", str(png)),
+            _run(_cli(command, str(root), *args, "--out", str(png)),
                  f"{command}: GT contours over the data ({png.name})")
     return root
 
@@ -200,17 +232,19 @@ def short_runs(cfg: DemoConfig) -> Path:
 
 
 def train_command(cfg: DemoConfig, root: Path, model: str, short: bool = False) -> list[str]:
-    """``train.py`` for ``model`` with the demo profile and budget (``short``: the short run's, from its
-    ImageNet start, validated before training too); the detector, and the refiner trained alone,
-    as two single-threaded DDP processes (torchrun), which train 1.9x faster than one two-threaded
-    process on 2 cores."""
+    """``cosy-lite train`` for ``model`` with the demo profile and budget (``short``: the short run's, from
+    its ImageNet start, validated before training too; ``cfg.quick``: a few steps); the detector, and the
+    refiner trained alone, as two single-threaded DDP processes (torchrun), which train 1.9x faster than
+    one two-threaded process on 2 cores."""
     run_dir = (short_runs(cfg) if short else cfg.runs) / model
-    args = ["train.py", "--dataset", str(root), "--model", model, "--profile", "demo", "--out", str(run_dir)]
+    args = [*CLI, "train", "--dataset", str(root), "--model", model, "--profile", "demo", "--out", str(run_dir)]
     if (run_dir / "checkpoint.pt").is_file():
         args.append("--resume")
     args.append(f"loop.max_minutes={(cfg.short_minutes if short else cfg.train_minutes)[model]}")
     if short:
         args += ["loop.val_at_start=true", "loop.log_every=5", *SHORT_OVERRIDES[model]]
+    if cfg.quick:
+        args += QUICK_OVERRIDES[model]
     if model == "detector" or (model == "refiner" and "coarse" not in trained_models(cfg)):
         return _py("-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", *args, "loop.num_workers=0")
     return _py(*args, "loop.num_workers=0") if short else _py(*args)
@@ -224,7 +258,7 @@ def _run_parallel(cmds: list[list[str]], whats: list[str], logs: list[Path]) -> 
         print(f"\n=== {what} (log: {log})\n$ {' '.join(cmd)}", flush=True)
         log.parent.mkdir(parents=True, exist_ok=True)
         with log.open("w") as out:  # the child keeps its own copy of the descriptor
-            procs.append((subprocess.Popen(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT), what, log))
+            procs.append((subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT), what, log))
     t = time.perf_counter()
     failed = []
     for proc, what, log in procs:
@@ -332,7 +366,7 @@ def plot_training(logs: dict[str, dict], path: Path) -> None:
 
 
 def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
-    """The unfinished ``infer.py`` runs side by side (``cfg.threads`` shared between them: much of a
+    """The unfinished ``cosy-lite infer`` runs side by side (``cfg.threads`` shared between them: much of a
     run is single-threaded rendering, ICP and template matching), then every evaluation."""
     todo = []
     for run in infer_runs(cfg):
@@ -344,7 +378,7 @@ def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
     cmds, whats = [], []
     for run in todo:
         csv = _csv(cfg, run.method)
-        cmds.append(_py("infer.py", "--dataset", str(root), *model_args(cfg), "--threads", str(threads),
+        cmds.append(_cli("infer", "--dataset", str(root), *model_args(cfg), "--threads", str(threads),
                         "--method", run.method, "--out", str(csv.parent),
                         *(["--no-progress"] if len(todo) > 1 else []), *run.args))
         whats.append(f"infer: {run.label}" + (f" (and {run.before_icp[1]})" if run.before_icp else ""))
@@ -357,7 +391,7 @@ def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
         csv = _csv(cfg, run.method)
         scores = csv.parent / f"{csv.stem}_eval" / "scores.json"
         if not scores.is_file():
-            _run(_py("-m", "cosy_lite.cli", "eval", "--dataset", str(root), "--results", str(csv), "--out", str(scores.parent)),
+            _run(_cli("eval", "--dataset", str(root), "--results", str(csv), "--out", str(scores.parent)),
                  f"evaluate: {run.label}")
         results.append((run, json.loads(scores.read_text())))
     return results
@@ -372,7 +406,7 @@ def detector_scores(cfg: DemoConfig, root: Path) -> dict | None:
     if not dets.is_file():
         return None
     if not scores.is_file():
-        _run(_py("-m", "cosy_lite.cli", "eval", "--dataset", str(root), "--results", str(dets), "--task", "2d-detection",
+        _run(_cli("eval", "--dataset", str(root), "--results", str(dets), "--task", "2d-detection",
                  "--bbox-type", "modal", "--out", str(out)), "evaluate: the detector's boxes")
     return json.loads(scores.read_text())
 
@@ -415,10 +449,13 @@ def plot_summary(results: list[tuple[InferRun, dict]], path: Path, title: str = 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", default=DemoConfig.dataset, help="synthetic dataset name (generated if absent)")
-    p.add_argument("--data-root", type=Path, default=DemoConfig.data_root)
-    p.add_argument("--runs", type=Path, default=DemoConfig.runs, help="run folders of the three models")
-    p.add_argument("--out", type=Path, default=DemoConfig.out,
-                   help="CSVs, scores, overlays, summary (default outputs/; --train: outputs/train/)")
+    p.add_argument("--data-root", type=Path, default=None,
+                   help=f"datasets folder (default {DemoConfig.data_root}/; --quick: {QUICK['data_root']}/)")
+    p.add_argument("--runs", type=Path, default=None,
+                   help=f"run folders of the three models (default {DemoConfig.runs}/; --quick: {QUICK['runs']}/)")
+    p.add_argument("--out", type=Path, default=None,
+                   help=f"CSVs, scores, overlays, summary (default {DemoConfig.out}/, --quick: {QUICK['out']}/; "
+                        "with --train: its train/ subfolder)")
     p.add_argument("--train", action="store_true",
                    help="train the networks from scratch (demo profiles, ~40 min) instead of inferring with the shipped "
                         "reference models (the default for datasets that have them)")
@@ -431,6 +468,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "or the trained coarse network (CosyPose)")
     p.add_argument("--candidates", type=int, default=DemoConfig.n_candidates, metavar="K",
                    help=f"--train --start templates: templates tried per detection (default {DemoConfig.n_candidates})")
+    p.add_argument("--quick", action="store_true",
+                   help=f"every step at toy size, a smoke test of the installation (a few minutes; the numbers mean "
+                        f"nothing): 2 test images and {QUICK['short_train_images']} training images generated, 2 training "
+                        f"steps per network, validation on 2 images; own folders (defaults {QUICK['data_root']}/, "
+                        f"{QUICK['runs']}/, {QUICK['out']}/)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -441,11 +483,18 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.inference.reference_models import reference_models
 
     if args.dataset in RENAMED_DATASETS:
-        raise BopFormatError(args.data_root / args.dataset, "--dataset", renamed_dataset_message(args.dataset)
+        raise BopFormatError((args.data_root or DemoConfig.data_root) / args.dataset, "--dataset", renamed_dataset_message(args.dataset)
                              + f": use --dataset {RENAMED_DATASETS[args.dataset]}")
-    out = args.out / "train" if args.train and args.out == DemoConfig.out else args.out  # apart from the reference results
-    cfg = DemoConfig(dataset=args.dataset, data_root=args.data_root, runs=args.runs, out=out, train=args.train,
+    defaults = QUICK if args.quick else {"data_root": DemoConfig.data_root, "runs": DemoConfig.runs, "out": DemoConfig.out}
+    data_root = args.data_root if args.data_root is not None else defaults["data_root"]
+    runs = args.runs if args.runs is not None else defaults["runs"]
+    out = args.out if args.out is not None else defaults["out"]
+    if args.train and args.out is None:
+        out = out / "train"  # apart from the reference results
+    cfg = DemoConfig(dataset=args.dataset, data_root=data_root, runs=runs, out=out, train=args.train,
                      pretrained=args.pretrained, start=args.start, n_candidates=args.candidates)
+    if args.quick:
+        cfg.quick, cfg.short_train_images, cfg.vis = True, QUICK["short_train_images"], QUICK["vis"]
     if cfg.reference is not None:
         reference_models(cfg.reference)  # an unknown --pretrained name fails here, before any work
     if args.minutes:

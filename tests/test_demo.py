@@ -1,7 +1,9 @@
 """``cosy-lite demo`` orchestration: which commands it runs, what it skips, the summary it prints.
 
-The steps themselves (generate, train.py, infer.py, eval) have their own tests; here ``_run`` is
+The steps themselves (generate, train, infer, eval) have their own tests; here ``_run`` is
 replaced by a recorder so the order, the arguments and the resume rules are checked in milliseconds.
+Every step is ``python -m cosy_lite.cli COMMAND`` (torchrun ``-m cosy_lite.cli train``): the demo needs
+the installed package, not the source tree (``tests/test_installed_package.py`` runs it installed).
 """
 
 from __future__ import annotations
@@ -22,6 +24,12 @@ def recorded(monkeypatch):
     return calls
 
 
+def _is(cmd: list[str], command: str) -> bool:
+    """Whether ``cmd`` runs ``cosy-lite COMMAND`` (``python -m cosy_lite.cli COMMAND ...``, also under torchrun)."""
+    i = max(i for i, a in enumerate(cmd) if a == "-m")
+    return cmd[i + 1:i + 3] == ["cosy_lite.cli", command]
+
+
 def _cfg(tmp_path: Path, start: str = "templates", train: bool = True) -> demo.DemoConfig:
     return demo.DemoConfig(data_root=tmp_path / "data", runs=tmp_path / "runs", out=tmp_path / "out", start=start,
                            train=train)
@@ -39,7 +47,7 @@ def test_with_templates_the_detector_and_the_refiner_train_on_both_cores(tmp_pat
     monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
     demo.infer_and_eval(cfg, tmp_path / "missing")  # no scores: every step runs
-    infer = [c for c in recorded if "infer.py" in c][0]
+    infer = [c for c in recorded if _is(c, "infer")][0]
     assert "--coarse" not in infer and infer[infer.index("--start") + 1] == "templates"
     assert infer[infer.index("--candidates") + 1] == str(cfg.n_candidates)
 
@@ -128,7 +136,7 @@ def test_infer_and_eval_runs_the_missing_steps_with_the_demo_checkpoints(tmp_pat
     monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
     demo.infer_and_eval(cfg, tmp_path / "root")
-    infers = [c for c in recorded if "infer.py" in c]
+    infers = [c for c in recorded if _is(c, "infer")]
     evals = [c for c in recorded if "eval" in c]
     assert len(infers) == 2 and len(evals) == 4  # each ICP run also writes its poses before ICP
     for cmd, before in zip(infers, ("cosylite", "cosyliteoracle")):
@@ -166,7 +174,7 @@ def test_with_reference_models_inference_uses_them_and_each_network_gets_a_short
     monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
     demo.infer_and_eval(cfg, tmp_path / "root")
-    infers = [c for c in recorded if "infer.py" in c]
+    infers = [c for c in recorded if _is(c, "infer")]
     assert len(infers) == 2
     for cmd in infers:
         assert cmd[cmd.index("--pretrained") + 1] == "ycbvsynth"
@@ -179,7 +187,8 @@ def test_with_reference_models_inference_uses_them_and_each_network_gets_a_short
     assert [c[c.index("--model") + 1] for c in recorded] == ["detector", "coarse", "refiner"]
     det, coarse, refiner = recorded
     assert det[1:6] == ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    assert coarse[1] == "train.py" and refiner[1] == "train.py"  # side by side, one core each
+    assert coarse[1:4] == refiner[1:4] == ["-m", "cosy_lite.cli", "train"]  # side by side, one core each
+    assert det[6:9] == ["-m", "cosy_lite.cli", "train"]  # torchrun runs the package's module, not a script
     for cmd, m in zip(recorded, demo.MODELS):
         assert "loop.val_at_start=true" in cmd and f"loop.max_minutes={cfg.short_minutes[m]}" in cmd
         assert cmd[cmd.index("--out") + 1] == str(cfg.runs / "short" / m)  # not the from-scratch runs' folders
@@ -198,3 +207,63 @@ def test_training_table_and_plot_show_the_loss_and_the_held_out_metric(tmp_path)
     assert table[2].endswith("| 0.500 (step 0) -> 0.250 (step 20) |")
     demo.plot_training(logs, tmp_path / "training.png")
     assert (tmp_path / "training.png").stat().st_size > 10000
+
+
+def test_every_step_runs_the_package_from_the_current_folder(tmp_path, recorded, monkeypatch):
+    """No step names a file of the source tree: the commands are ``python -m cosy_lite.cli ...`` and the
+    default folders are relative to the current folder."""
+    cfg = demo.DemoConfig()
+    assert not any(p.is_absolute() for p in (cfg.data_root, cfg.runs, cfg.out))
+    monkeypatch.chdir(tmp_path)
+    demo.prepare_dataset(cfg)
+    monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: "{}")
+    demo.infer_and_eval(cfg, cfg.data_root / cfg.dataset)
+    for cmd in recorded:
+        assert cmd[0] == demo.sys.executable and cmd[1:3] == ["-m", "cosy_lite.cli"], cmd
+        assert not any(a.endswith(".py") for a in cmd), cmd
+    gen = recorded[0]
+    assert _is(gen, "generate") and "--config" not in gen  # ycbvsynth: the generator's defaults
+
+
+def test_quick_mode_runs_every_step_at_toy_size_in_its_own_folders(tmp_path, recorded, monkeypatch):
+    import argparse
+
+    monkeypatch.chdir(tmp_path)
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser)
+    seen = {}
+
+    def stop(cfg):  # the configured demo, without running anything
+        seen["cfg"] = cfg
+        raise SystemExit(0)
+
+    monkeypatch.setattr(demo, "prepare_dataset", stop)
+    with pytest.raises(SystemExit):
+        demo.run(parser.parse_args(["--quick"]))
+    cfg = seen["cfg"]
+    assert (cfg.data_root, cfg.runs, cfg.out) == (demo.QUICK["data_root"], demo.QUICK["runs"], demo.QUICK["out"])
+    assert cfg.quick and cfg.vis == 1 and cfg.reference == "ycbvsynth"
+    with pytest.raises(SystemExit):
+        demo.run(parser.parse_args([]))
+    assert (seen["cfg"].data_root, seen["cfg"].out, seen["cfg"].quick) == (Path("data"), Path("outputs"), False)
+    with pytest.raises(SystemExit):
+        demo.run(parser.parse_args(["--train"]))
+    assert seen["cfg"].out == Path("outputs") / "train"
+
+    monkeypatch.undo()
+    monkeypatch.setattr(demo, "_run", lambda cmd, what, env=None: recorded.append(cmd))
+    monkeypatch.setattr(demo, "_run_parallel", lambda cmds, whats, logs: recorded.extend(cmds))
+    cfg.data_root, cfg.runs, cfg.out = tmp_path / "data", tmp_path / "runs", tmp_path / "out"
+    demo.prepare_dataset(cfg)
+    gen = recorded[0]
+    assert all(o in gen for o in demo.QUICK_GENERATE) and gen.index("--splits") > gen.index(demo.QUICK_GENERATE[-1])
+    assert f"train.n_images={demo.QUICK['short_train_images']}" in gen
+    recorded.clear()
+    demo.short_training(cfg, tmp_path / "root")
+    assert [c[c.index("--model") + 1] for c in recorded] == list(demo.MODELS)
+    for cmd, model in zip(recorded, demo.MODELS):
+        quick = demo.QUICK_OVERRIDES[model]
+        at = cmd.index(quick[0])
+        assert cmd[at:at + len(quick)] == quick and at > cmd.index("data.val_images=10")  # after the short run's: they win
+        assert "loop.steps=2" in cmd
