@@ -10,9 +10,9 @@ rotations, the object's centre near the crop's centre, at the depth where its di
 crop height (a CosyPose crop holds the object's box enlarged ~1.4x). Each configuration: one
 warm-up call, then ``--calls`` calls on the same batch, all configurations in turns (so that other
 processes' load on a shared machine falls on each alike); the table gives the median and best
-renders/s. ``--baselines`` adds, at the first resolution and largest batch: pyrender with a Scene
-per crop (``ObjectRenderer``, what the evaluator uses), pyrender with one Scene whose nodes are
-toggled, and this renderer without back-face culling, with one crop in flight, and with the crops
+renders/s. ``--baselines`` adds, at the first resolution and largest batch: pyrender's own
+renderer (on the same GL stack, :mod:`cosy_lite.render.pyrender_scene`) with a Scene per crop and
+with one Scene whose nodes are toggled, and this renderer without back-face culling, with one crop in flight, and with the crops
 as tiles of one tall framebuffer read back at once (the alternative measured and not kept).
 """
 
@@ -72,11 +72,34 @@ def time_round_robin(fns: list[Callable[[], object]], calls: int) -> list[list[f
     return out
 
 
+class PyrenderScenePerCrop:
+    """Baseline: pyrender's renderer with a new Scene per crop (each object alone, flat)."""
+
+    def __init__(self, meshes: dict, resolution: tuple[int, int]):
+        from cosy_lite.render.pyrender_scene import OffscreenSceneRenderer, pyrender_module
+
+        self.meshes = {i: pyrender_module().Mesh.from_trimesh(m) for i, m in meshes.items()}
+        self.renderer = OffscreenSceneRenderer(resolution[1], resolution[0])
+
+    def render(self, ids, TCO, K):
+        from cosy_lite.render.gl import CV_TO_GL
+        from cosy_lite.render.pyrender_scene import intrinsics_camera, pyrender_module
+
+        pyrender = pyrender_module()
+        out = []
+        for obj_id, T in zip(ids, TCO):
+            scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[1.0, 1.0, 1.0])
+            scene.add(self.meshes[obj_id], pose=CV_TO_GL @ T)
+            scene.add(intrinsics_camera(K), pose=np.eye(4))
+            out.append(self.renderer.render(scene, flags=pyrender.RenderFlags.FLAT))
+        return out
+
+
 class PyrenderSceneToggle:
     """Baseline: one pyrender Scene with every object node added once, toggled visible per crop."""
 
     def __init__(self, meshes: dict, resolution: tuple[int, int]):
-        from cosy_lite.render.gl import intrinsics_camera, pyrender_module
+        from cosy_lite.render.pyrender_scene import OffscreenSceneRenderer, intrinsics_camera, pyrender_module
 
         pyrender = pyrender_module()
         H, W = resolution
@@ -90,7 +113,7 @@ class PyrenderSceneToggle:
             self.nodes[obj_id] = self.scene.add(m)
         self.camera = intrinsics_camera(np.eye(3))
         self.scene.add(self.camera, pose=np.eye(4))
-        self.renderer = pyrender.OffscreenRenderer(W, H)
+        self.renderer = OffscreenSceneRenderer(W, H)
         self.flags = pyrender.RenderFlags.FLAT
 
     def render(self, ids, TCO, K):
@@ -107,9 +130,10 @@ class PyrenderSceneToggle:
         return out
 
 
-def tiled_pass(gls, fbs, meshes, MVP, z_rows, cull, resolution, rgb, depth) -> None:
+def tiled_pass(gls, fbs, meshes, MVP, z_rows, cull, resolution, rgb, depth, MV=None, shaded=False) -> None:
     """The alternative measured and not kept: crop j drawn as tile j (rows [j H, (j+1) H)) of one
-    tall framebuffer, one read-back per channel for all (a drop-in for ``renderer._render_pass``)."""
+    tall framebuffer, one read-back per channel for all (a drop-in for ``renderer._render_pass``;
+    flat colours only: ``MV`` and ``shaded`` are ignored)."""
     from OpenGL import GL as gl
 
     from cosy_lite.render import renderer as R
@@ -140,9 +164,9 @@ def tiled_pass(gls, fbs, meshes, MVP, z_rows, cull, resolution, rgb, depth) -> N
         gl.glBindVertexArray(mesh.vao)
         gl.glDrawElements(gl.GL_TRIANGLES, mesh.n_indices, gl.GL_UNSIGNED_INT, None)
     gl.glBindVertexArray(0)
-    R._read_into(gl.GL_COLOR_ATTACHMENT1, W, n * H, gl.GL_RED, gl.GL_FLOAT, depth)
+    R._read_into(gl.GL_COLOR_ATTACHMENT1, (0, 0, W, n * H), gl.GL_RED, gl.GL_FLOAT, depth)
     if rgb is not None:
-        R._read_into(gl.GL_COLOR_ATTACHMENT0, W, n * H, gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb)
+        R._read_into(gl.GL_COLOR_ATTACHMENT0, (0, 0, W, n * H), gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb)
 
 
 def render_tiled(renderer, *args, **kwargs):
@@ -198,15 +222,13 @@ def main(argv: list[str] | None = None) -> None:
                     fn = partial(renderer.render, ids, TCO, K, res, depth_only=depth_only)
                     cases.append((res, B, "depth" if depth_only else "rgb+depth", fn, mask))
         if args.baselines:
-            from cosy_lite.render.object_renderer import ObjectRenderer
-
             res, B = args.resolutions[0], max(args.batches)
             ids, TCO, K = crop_batch(meshes, args.objects, B, res)
-            per_scene = ObjectRenderer(meshes)
+            per_scene = PyrenderScenePerCrop(meshes, res)
             toggle = PyrenderSceneToggle(meshes, res)
             no_cull, tiled = PyrenderRenderer(meshes, cull_back_faces=False), PyrenderRenderer(meshes)
             variants = {
-                "pyrender, Scene per crop (ObjectRenderer)": partial(per_scene.render, ids, TCO, K, res[1], res[0]),
+                "pyrender, Scene per crop": partial(per_scene.render, ids, TCO, K),
                 "pyrender, one Scene, nodes toggled": partial(toggle.render, ids, TCO, K),
                 "this, no back-face culling": partial(no_cull.render, ids, TCO, K, res),
                 "this, 1 crop in flight": partial(PyrenderRenderer(meshes, max_in_flight=1).render, ids, TCO, K, res),

@@ -79,17 +79,16 @@ def test_bad_requests_raise(renderer):
 
 
 def test_closing_a_renderer_keeps_the_others_working(renderer):
-    # close() destroys its own EGL context only: eglTerminate would kill every context of the display
-    # (pyrender's delete() does terminate it, so it comes last).
+    # close() destroys its own EGL context only: eglTerminate would kill every context of the display.
     from cosy_lite.eval.depth_renderer import WindowDepthRenderer
-    from cosy_lite.render.object_renderer import ObjectRenderer
+    from cosy_lite.render.renderer import PyrenderRenderer
 
     box = trimesh.creation.box(extents=2 * HALF)
-    pyr = ObjectRenderer({3: box})
+    pyr = PyrenderRenderer({3: box})
     T = _pose([0.0, 0.0, 0.5])
-    n_pyr = np.count_nonzero(pyr.render([3], T[None], K, W, H, depth_only=True)[1])
+    n_pyr = np.count_nonzero(pyr.render([3], T[None], K, (H, W), depth_only=True).depth)
     with WindowDepthRenderer({3: (box.vertices, box.faces)}, W, H) as other:
         assert np.count_nonzero(other.render(3, T, K, Window(0, 0, W, H))) == 26 * 42
     assert np.count_nonzero(renderer.render(3, T, K, Window(0, 0, W, H))) == 26 * 42
-    assert np.count_nonzero(pyr.render([3], T[None], K, W, H, depth_only=True)[1]) == n_pyr
-    pyr.delete()
+    assert np.count_nonzero(pyr.render([3], T[None], K, (H, W), depth_only=True).depth) == n_pyr
+    pyr.close()

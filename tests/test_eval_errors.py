@@ -152,10 +152,10 @@ def _renderer():
     import trimesh
 
     try:
-        from cosy_lite.render.object_renderer import ObjectRenderer
+        from cosy_lite.render.renderer import PyrenderRenderer
 
-        r = ObjectRenderer({1: trimesh.creation.box(extents=2 * HALF)})
-        r.render([1], _pose()[None], K, 640, 480, depth_only=True)  # one size per renderer
+        r = PyrenderRenderer({1: trimesh.creation.box(extents=2 * HALF)})
+        r.render([1], _pose()[None], K, (480, 640), depth_only=True)
     except Exception as e:  # no EGL / OpenGL on this machine
         pytest.skip(f"offscreen rendering unavailable: {e}")
     return r
@@ -167,8 +167,8 @@ def test_vsd_of_a_symmetric_pose_is_zero_when_rendered():
     r = _renderer()
     gt = _pose(np.array([[1.0, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]]), (0.01, 0.02, 0.5))
     poses = np.stack([gt, gt @ _flip(0), gt @ _flip(1), gt @ _flip(2), gt @ _pose(t=(0.01, 0.0, 0.0))])
-    _, depth = r.render([1] * 5, poses, K, 640, 480, depth_only=True)
-    r.delete()
+    depth = r.render([1] * 5, poses, K, (480, 640), depth_only=True).depth
+    r.close()
     dist = [depth_to_distance(d, K) for d in depth]
     test = np.zeros((480, 640), np.float32)  # no measurement: everything visible
     taus = np.arange(0.05, 0.51, 0.05) * 2 * np.linalg.norm(HALF)

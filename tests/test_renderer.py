@@ -317,11 +317,9 @@ def test_closing_a_renderer_leaves_other_contexts_alive(renderer, meshes):
     """close() and garbage collection destroy only the renderer's own context (no eglTerminate)."""
     import gc
 
-    from cosy_lite.render.object_renderer import ObjectRenderer
-
-    other = ObjectRenderer({BOX: meshes[BOX]})
+    other = PyrenderRenderer({BOX: meshes[BOX]})
     T = _T(t=(0.0, 0.0, 0.6))[None]
-    _, before = other.render([BOX], T, K, RES[1], RES[0], depth_only=True)
+    before = other.render([BOX], T, K, RES, depth_only=True).depth
     try:
         for close in (True, False):
             r = PyrenderRenderer({BOX: meshes[BOX]})
@@ -330,21 +328,34 @@ def test_closing_a_renderer_leaves_other_contexts_alive(renderer, meshes):
                 r.close()
             del r
             gc.collect()
-            _, after = other.render([BOX], T, K, RES[1], RES[0], depth_only=True)  # fails if the display was terminated
+            after = other.render([BOX], T, K, RES, depth_only=True).depth  # fails if the display was terminated
             np.testing.assert_array_equal(after, before)
     finally:
-        other.delete()  # now, not at some later garbage collection (it terminates the EGL display)
+        other.close()
+
+
+def _pyrender_offscreen_depth(mesh: trimesh.Trimesh, TCO: np.ndarray, K: np.ndarray, resolution) -> np.ndarray:
+    """Depth [H,W] of ``mesh`` at ``TCO`` rendered by pyrender's own ``OffscreenRenderer`` (what a user's
+    code may do in the same process), whose ``delete()`` terminates the EGL display."""
+    from cosy_lite.render.gl import CV_TO_GL
+    from cosy_lite.render.pyrender_scene import intrinsics_camera, pyrender_module
+
+    pyrender = pyrender_module()
+    scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[1.0, 1.0, 1.0])
+    scene.add(pyrender.Mesh.from_trimesh(mesh), pose=CV_TO_GL @ TCO)
+    scene.add(intrinsics_camera(K), pose=np.eye(4))
+    offscreen = pyrender.OffscreenRenderer(resolution[1], resolution[0])
+    try:
+        return offscreen.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY).copy()
+    finally:
+        offscreen.delete()  # eglTerminate
 
 
 def test_survives_pyrender_terminating_the_display(renderer, meshes):
     """pyrender's OffscreenRenderer.delete() calls eglTerminate: the renderer starts a new context."""
-    from cosy_lite.render.object_renderer import ObjectRenderer
-
     T = _T(_rot("y", 30), (0.0, 0.0, 0.5))[None]
     before = renderer.render([BOX], T, K, RES)
-    other = ObjectRenderer({BOX: meshes[BOX]})
-    _, depth = other.render([BOX], T, K, RES[1], RES[0], depth_only=True)
-    other.delete()
+    depth = _pyrender_offscreen_depth(meshes[BOX], T[0], K, RES)[None]
     after = renderer.render([BOX], T, K, RES)
     np.testing.assert_array_equal(after.depth, before.depth)
     both = before.mask[0] & (depth[0] > 0)  # and pyrender agrees (it samples 4x MSAA, so edges differ)

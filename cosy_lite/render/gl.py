@@ -1,8 +1,15 @@
-"""pyrender plumbing shared by every renderer: EGL set-up, OpenCV <-> OpenGL camera frames.
+"""The one OpenGL stack of the process: EGL contexts and the OpenCV -> OpenGL projection.
 
-Pixel convention: pyrender's ``IntrinsicsCamera`` (like the BOP toolkit's renderer) maps a point
-with OpenCV projection ``u = fx x/z + cx`` to window coordinate ``u``; pixel ``i`` covers
-``[i, i+1)``. Masks and depth maps are therefore comparable with those of the BOP toolkit.
+Every renderer (render-and-compare, ICP and templates: :class:`~cosy_lite.render.renderer.PyrenderRenderer`;
+the evaluator's windowed depth: :mod:`cosy_lite.eval.depth_renderer`; pictures; the synthetic
+generator's lit scenes: :mod:`cosy_lite.render.pyrender_scene`) renders in an :class:`EglContext`
+of its own, made current only while it renders and destroyed without terminating the EGL display,
+so that renderers of any kind can be created and closed in any order in one process.
+
+Pixel convention (as the BOP toolkit's renderer): a point with OpenCV projection
+``u = fx x/z + s y/z + cx``, ``v = fy y/z + cy`` lands at window coordinates ``(u, v)``; pixel
+``(row r, column c)`` covers ``[c, c+1) x [r, r+1)`` and is sampled at its centre
+``(c + 0.5, r + 0.5)``. Masks and depth maps are therefore comparable with those of the toolkit.
 """
 
 from __future__ import annotations
@@ -16,28 +23,35 @@ CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def use_egl() -> None:
-    """Select headless EGL for PyOpenGL unless the user chose a platform. Call before importing pyrender."""
+    """Select headless EGL for PyOpenGL unless the user chose a platform. Call before importing OpenGL."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 
-def pyrender_module():
-    """Import pyrender with EGL selected (lazy: nothing happens at import of cosy_lite)."""
-    use_egl()
-    import pyrender
+def projection_matrices(
+    K: np.ndarray, resolution: tuple[int, int], znear: float, zfar: float, y_up: bool = False
+) -> np.ndarray:
+    """Clip-from-camera matrices [B,4,4] for OpenCV cameras K [B,3,3] (skew kept), image (H, W).
 
-    return pyrender
-
-
-def camera_node_pose(T_CW: np.ndarray) -> np.ndarray:
-    """pyrender camera node pose (camera-to-world, OpenGL axes) from an OpenCV world-to-camera transform."""
-    return np.linalg.inv(T_CW) @ CV_TO_GL
-
-
-def intrinsics_camera(K: np.ndarray, znear: float = 0.01, zfar: float = 20.0):
-    pyrender = pyrender_module()
-    return pyrender.IntrinsicsCamera(
-        fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]), znear=znear, zfar=zfar
-    )
+    Window x = u and window y = v (not H - v): the framebuffer's first row is the image's top row,
+    so read-back needs no flip (and outward counter-clockwise faces appear clockwise). ``y_up``:
+    window y = H - v instead (OpenGL's and the BOP toolkit's renderer's way; rows read back
+    bottom-up). Either way the pixel centres are sampled. Camera z in [znear, zfar] (m) maps to NDC [-1, 1].
+    """
+    H, W = resolution
+    P = np.zeros((len(K), 4, 4))
+    P[:, 0, 0] = 2.0 * K[:, 0, 0] / W
+    P[:, 0, 1] = 2.0 * K[:, 0, 1] / W
+    P[:, 0, 2] = 2.0 * K[:, 0, 2] / W - 1.0
+    if y_up:
+        P[:, 1, 1] = -2.0 * K[:, 1, 1] / H
+        P[:, 1, 2] = 1.0 - 2.0 * K[:, 1, 2] / H
+    else:
+        P[:, 1, 1] = 2.0 * K[:, 1, 1] / H
+        P[:, 1, 2] = 2.0 * K[:, 1, 2] / H - 1.0
+    P[:, 2, 2] = (zfar + znear) / (zfar - znear)
+    P[:, 2, 3] = -2.0 * zfar * znear / (zfar - znear)
+    P[:, 3, 2] = 1.0
+    return P
 
 
 # ----------------------------------------------------------------------------- EGL contexts
@@ -53,7 +67,7 @@ class EglContext:
     such a child raises instead (use a ``spawn``/``forkserver`` start method, or render only in the
     children). :meth:`destroy` destroys this context only; it never calls ``eglTerminate``, which
     would invalidate every other context of the process (pyrender's ``OffscreenRenderer.delete``
-    does terminate the display).
+    does terminate the display: this project does not use it).
 
     Args:
         device_index: EGL device (GPU) index; default: ``$EGL_DEVICE_ID`` (pyrender's variable) or 0.
@@ -85,6 +99,7 @@ class EglContext:
         self.pid = os.getpid()
 
     def make_current(self) -> None:
+        """Make this context current in the calling thread (raises if the display was terminated)."""
         self._platform.make_current()
 
     def release(self) -> None:
@@ -103,7 +118,7 @@ class EglContext:
             try:
                 self.release()
                 EGL.eglDestroyContext(p._egl_display, p._egl_context)
-            except Exception:  # display already terminated (by another renderer): the context is gone
+            except Exception:  # display already terminated (by someone else): the context is gone
                 pass
         # With no handles left, pyrender's Platform.__del__ neither destroys nor eglTerminates.
         p._egl_context = None

@@ -1,4 +1,7 @@
-"""Batched renderer of objects alone on black: RGB, depth and mask of B crops in one call.
+"""Batched renderer of objects alone on black: RGB, depth and mask of B crops (or full images) in
+one call; and the depth of one object inside a window of an image, for the evaluator's VSD
+(:meth:`PyrenderRenderer.render_depth_window`). Used by render-and-compare, ICP, the silhouette
+templates, the evaluator and the pictures; its context is :mod:`.gl`'s.
 
 Conventions: ``TCO`` object-to-camera (m), OpenCV camera, ``K`` in pixels, ``resolution=(H, W)``.
 Pixel ``(row r, column c)`` is sampled at ``(u, v) = (c + 0.5, r + 0.5)`` (as :mod:`.gl` and the
@@ -10,12 +13,13 @@ normals from screen-space derivatives: without it an untextured object is a flat
 3D shape inside. No anti-aliasing: a pixel is covered iff its centre is.
 
 How it is fast (measured in ``bench/bench_render.py``): one headless GL context per renderer
-(pyrender's EGL platform) and a minimal shader (no per-vertex normal matrix, no lights); each mesh
-uploaded once as a vertex array (+ a mipmapped texture); back faces culled where that cannot show
-(checked per mesh, see ``cull_back_faces``); the B crops of a call are drawn into B framebuffers
-before any read-back, so on Mesa llvmpipe the rasterizer threads fill crop i while this thread
-transforms crop i+1 (16k-face meshes make llvmpipe geometry-bound); each crop is then read with one
-``glReadPixels`` per channel straight into the ``[B,H,W]`` output arrays (no flip: window y = v).
+(:class:`~cosy_lite.render.gl.EglContext`) and a minimal shader (no per-vertex normal matrix, no
+lights); each mesh uploaded once as a vertex array (+ a mipmapped texture); back faces culled where
+that cannot show (checked per mesh, see ``cull_back_faces``); the B crops of a call are drawn into
+B framebuffers before any read-back, so on Mesa llvmpipe the rasterizer threads fill crop i while
+this thread transforms crop i+1 (16k-face meshes make llvmpipe geometry-bound); each crop is then
+read with one ``glReadPixels`` per channel straight into the ``[B,H,W]`` output arrays (no flip:
+window y = v).
 """
 
 from __future__ import annotations
@@ -23,11 +27,14 @@ from __future__ import annotations
 import ctypes
 import os
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
+
+from cosy_lite.render.gl import projection_matrices
 
 if TYPE_CHECKING:
     import torch
@@ -117,25 +124,6 @@ def check_render_inputs(
     if len(resolution) != 2 or int(resolution[0]) <= 0 or int(resolution[1]) <= 0:
         raise ValueError(f"resolution must be (H, W) > 0, got {resolution}")
     return ids, TCO, K, (int(resolution[0]), int(resolution[1]))
-
-
-def projection_matrices(K: np.ndarray, resolution: Resolution, znear: float, zfar: float) -> np.ndarray:
-    """Clip-from-camera matrices [B,4,4] for OpenCV cameras K [B,3,3] (skew kept).
-
-    Window x = u = fx x/z + s y/z + cx and window y = v (not H - v): the framebuffer's first row is
-    the image's top row, so read-back needs no flip. z in [znear, zfar] maps to NDC [-1, 1].
-    """
-    H, W = resolution
-    P = np.zeros((len(K), 4, 4))
-    P[:, 0, 0] = 2.0 * K[:, 0, 0] / W
-    P[:, 0, 1] = 2.0 * K[:, 0, 1] / W
-    P[:, 0, 2] = 2.0 * K[:, 0, 2] / W - 1.0
-    P[:, 1, 1] = 2.0 * K[:, 1, 1] / H
-    P[:, 1, 2] = 2.0 * K[:, 1, 2] / H - 1.0
-    P[:, 2, 2] = (zfar + znear) / (zfar - znear)
-    P[:, 2, 3] = -2.0 * zfar * znear / (zfar - znear)
-    P[:, 3, 2] = 1.0
-    return P
 
 
 # ----------------------------------------------------------------------------- meshes -> GL arrays
@@ -253,6 +241,18 @@ layout(location = 1) out float depth;""" + _SHADE + """
 void main() { color = shade(v_attribute); depth = v_z; }
 """,
 }
+# The evaluator's window depth (see _window_depth_pass): P and MV apart, as the BOP toolkit's renderer.
+_WINDOW_VERTEX_SHADER = """#version 330 core
+layout(location = 0) in vec3 position;
+uniform mat4 P;   // clip <- camera, window y = H - v
+uniform mat4 MV;  // camera <- object (TCO)
+out float v_z;
+void main() {
+    vec4 p = MV * vec4(position, 1.0);
+    v_z = p.z;
+    gl_Position = P * p;
+}
+"""
 SHADINGS = ("flat", "headlight")  # flat: the colours as they are; headlight: shaded (see _SHADE)
 AMBIENT = 0.35  # share of the light that does not depend on the surface orientation (headlight)
 
@@ -278,7 +278,7 @@ class _Framebuffer:
 class _GlState:
     context: EglContext
     programs: dict[str, int]
-    uniforms: dict[str, tuple[int, int, int]]  # program kind -> (MVP, z_row, MV) locations
+    uniforms: dict[str, tuple[int, int, int]]  # kind -> (MVP, z_row, MV) locations; window_depth: (P, -1, MV)
     max_size: int  # largest framebuffer side (GL_MAX_RENDERBUFFER_SIZE, GL_MAX_VIEWPORT_DIMS)
     meshes: dict[int, _GpuMesh] = field(default_factory=dict)
     framebuffers: dict[Resolution, list[_Framebuffer]] = field(default_factory=dict)  # one per crop in flight
@@ -298,6 +298,11 @@ def _create_gl_state(device_index: int | None) -> _GlState:
     }
     uniforms = {k: (gl.glGetUniformLocation(p, "MVP"), gl.glGetUniformLocation(p, "z_row"), gl.glGetUniformLocation(p, "MV"))
                 for k, p in programs.items()}
+    programs["window_depth"] = shaders.compileProgram(
+        shaders.compileShader(_WINDOW_VERTEX_SHADER, gl.GL_VERTEX_SHADER),
+        shaders.compileShader(_FRAGMENT_SHADERS["depth"], gl.GL_FRAGMENT_SHADER), validate=False)
+    uniforms["window_depth"] = (gl.glGetUniformLocation(programs["window_depth"], "P"), -1,
+                                gl.glGetUniformLocation(programs["window_depth"], "MV"))
     for kind in ("texture", "texture_lit"):
         gl.glUseProgram(programs[kind])
         gl.glUniform1i(gl.glGetUniformLocation(programs[kind], "color_texture"), 0)
@@ -382,8 +387,9 @@ def _create_framebuffer(width: int, height: int) -> _Framebuffer:
 
 
 class PyrenderRenderer:
-    """The :class:`Renderer` backend: pyrender's EGL context (Mesa llvmpipe on CPU, NVIDIA EGL on a
-    GPU) and a lean OpenGL pass of its own (see the module docstring for the conventions).
+    """The :class:`Renderer` backend: an :class:`~cosy_lite.render.gl.EglContext` (Mesa llvmpipe on
+    CPU, NVIDIA EGL on a GPU) and a lean OpenGL pass of its own (see the module docstring for the
+    conventions); :meth:`render_depth_window` is the evaluator's windowed depth.
 
     Args:
         meshes: obj_id -> trimesh.Trimesh in metres (texture or vertex colours used as they are).
@@ -485,24 +491,59 @@ class PyrenderRenderer:
         MVP = (projection_matrices(K, (H, W), self.znear, self.zfar) @ TCO).astype(np.float32)
         z_rows = np.ascontiguousarray(TCO[:, 2, :], dtype=np.float32)
         MV = np.ascontiguousarray(TCO, dtype=np.float32)
-        with self._lock:
-            gls = self._current_gl_state()
-            try:
-                meshes = {obj_id: self._gpu_mesh(gls, obj_id) for obj_id in dict.fromkeys(ids)}
-                items = [meshes[obj_id] if TCO[i, 2, 3] > 0 else None for i, obj_id in enumerate(ids)]
-                if max(H, W) > gls.max_size:
-                    raise ValueError(f"resolution {(H, W)} exceeds this GL's largest framebuffer side {gls.max_size}")
-                group = max(1, min(self.max_in_flight, MAX_IN_FLIGHT_PIXELS // (H * W)))
-                for i0 in range(0, B, group):
-                    sl = slice(i0, min(B, i0 + group))
-                    _render_pass(
-                        gls, self._framebuffers(gls, (H, W), sl.stop - sl.start), items[sl], MVP[sl], z_rows[sl],
-                        [m is not None and m.cull for m in items[sl]], (H, W),
-                        None if rgb is None else rgb[sl], depth[sl], MV[sl], self.shading == "headlight",
-                    )
-            finally:
-                gls.context.release()
+        with self._gl_current() as gls:
+            meshes = {obj_id: self._gpu_mesh(gls, obj_id) for obj_id in dict.fromkeys(ids)}
+            items = [meshes[obj_id] if TCO[i, 2, 3] > 0 else None for i, obj_id in enumerate(ids)]
+            _check_size(gls, (H, W))
+            group = max(1, min(self.max_in_flight, MAX_IN_FLIGHT_PIXELS // (H * W)))
+            for i0 in range(0, B, group):
+                sl = slice(i0, min(B, i0 + group))
+                _render_pass(
+                    gls, self._framebuffers(gls, (H, W), sl.stop - sl.start), items[sl], MVP[sl], z_rows[sl],
+                    [m is not None and m.cull for m in items[sl]], (H, W),
+                    None if rgb is None else rgb[sl], depth[sl], MV[sl], self.shading == "headlight",
+                )
         return RenderOutput(rgb, depth, depth > 0)
+
+    def render_depth_window(
+        self, obj_id: int, TCO: Any, K: Any, resolution: Resolution, window: tuple[int, int, int, int],
+        znear: float | None = None, zfar: float | None = None,
+    ) -> np.ndarray:
+        """Depth [y1 - y0, x1 - x0] float32 (m, 0 = background) of ``obj_id`` alone at ``TCO`` [4,4]:
+        rows ``y0:y1`` and columns ``x0:x1`` of its full-image render (``K`` [3,3] the image's
+        intrinsics, ``resolution`` (H, W) the image's size), for ``window = (x0, y0, x1, y1)``.
+
+        Only the window is cleared, drawn (a scissor) and read back, so a small object in a large
+        image costs little; the projection is the full image's, so the pixels are exactly those of a
+        full-image render. ``znear``, ``zfar`` (m): clipping planes of this call (default: the
+        renderer's); planes tight around the object give the depth test its finest resolution.
+        Rasterised as the BOP toolkit's renderer (see :func:`_window_depth_pass`): two-sided; the
+        pixels of :meth:`render`, their depth up to the rounding of the float32 vertex transforms
+        (largest on grazing triangles). The object is drawn even if its origin is behind the camera
+        (unlike :meth:`render`).
+        """
+        TCO = _as_numpy(TCO)
+        if TCO.shape != (4, 4):
+            raise ValueError(f"TCO must be [4,4], got shape {TCO.shape}")
+        ids, TCO, K, (H, W) = check_render_inputs([obj_id], TCO[None], K, resolution)
+        x0, y0, x1, y1 = (int(v) for v in window)
+        depth = np.zeros((1, max(0, y1 - y0), max(0, x1 - x0)), dtype=np.float32)
+        if depth.size == 0:
+            return depth[0]
+        if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
+            raise ValueError(f"window {tuple(window)} (x0, y0, x1, y1) is not inside the {W}x{H} image")
+        znear = self.znear if znear is None else float(znear)
+        zfar = self.zfar if zfar is None else float(zfar)
+        if not 0 < znear < zfar:
+            raise ValueError(f"need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
+        self.mesh(ids[0])  # an unknown id fails before any GL work
+        P = projection_matrices(K, (H, W), znear, zfar, y_up=True)[0]
+        with self._gl_current() as gls:
+            mesh = self._gpu_mesh(gls, ids[0])
+            _check_size(gls, (H, W))
+            _window_depth_pass(gls, self._framebuffers(gls, (H, W), 1)[0], mesh, P, TCO[0], (H, W),
+                               (x0, y0, x1, y1), depth[0])
+        return depth[0]
 
     def render_tensors(
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution,
@@ -511,6 +552,16 @@ class PyrenderRenderer:
         """:meth:`render` as tensors on ``device``: rgb float [B,3,H,W] in [0, 1] (None if
         depth_only), depth [B,1,H,W] (m)."""
         return self.render(obj_ids, TCO, K, resolution, depth_only).to_tensors(device)
+
+    @contextmanager
+    def _gl_current(self) -> Iterator[_GlState]:
+        """This renderer's GL state, its context current in the calling thread, one caller at a time."""
+        with self._lock:
+            gls = self._current_gl_state()
+            try:
+                yield gls
+            finally:
+                gls.context.release()
 
     def _current_gl_state(self) -> _GlState:
         """This process's GL state, its context current in this thread (created on first use)."""
@@ -593,6 +644,11 @@ class PyrenderRenderer:
         self._lock = threading.Lock()
 
 
+def _check_size(gls: _GlState, resolution: Resolution) -> None:
+    if max(resolution) > gls.max_size:
+        raise ValueError(f"resolution {tuple(resolution)} exceeds this GL's largest framebuffer side {gls.max_size}")
+
+
 def _render_pass(
     gls: _GlState, fbs: Sequence[_Framebuffer], meshes: Sequence[_GpuMesh | None], MVP: np.ndarray, z_rows: np.ndarray,
     cull: Sequence[bool], resolution: Resolution, rgb: np.ndarray | None, depth: np.ndarray,
@@ -636,15 +692,49 @@ def _render_pass(
     gl.glBindVertexArray(0)
     for j in range(len(meshes)):
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fbs[j].fbo)
-        _read_into(gl.GL_COLOR_ATTACHMENT1, W, H, gl.GL_RED, gl.GL_FLOAT, depth[j])
+        _read_into(gl.GL_COLOR_ATTACHMENT1, (0, 0, W, H), gl.GL_RED, gl.GL_FLOAT, depth[j])
         if rgb is not None:
-            _read_into(gl.GL_COLOR_ATTACHMENT0, W, H, gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb[j])
+            _read_into(gl.GL_COLOR_ATTACHMENT0, (0, 0, W, H), gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb[j])
 
 
-def _read_into(buffer: int, width: int, height: int, fmt: int, gl_type: int, out: np.ndarray) -> None:
-    """glReadPixels of rows [0, height) of ``buffer`` straight into the C-contiguous ``out``."""
+def _window_depth_pass(
+    gls: _GlState, fb: _Framebuffer, mesh: _GpuMesh, P: np.ndarray, MV: np.ndarray, resolution: Resolution,
+    window: tuple[int, int, int, int], out: np.ndarray,
+) -> None:
+    """Depth of ``mesh`` inside ``window`` (x0, y0, x1, y1) of an (H, W) image into ``out`` [y1 - y0, x1 - x0].
+
+    Rasterised as the BOP toolkit's renderer (the evaluator's results are those of this pass):
+    window y = H - v (``P`` from :func:`~cosy_lite.render.gl.projection_matrices` with
+    ``y_up=True``), clip = P (MV p) and camera z = (MV p).z in the shader (``MV`` = TCO), two-sided.
+    Only the window is cleared, drawn (a scissor) and read back.
+    """
+    from OpenGL import GL as gl
+
+    H, W = resolution
+    x0, y0, x1, y1 = window
+    gl_window = (x0, H - y1, x1, H - y0)  # GL rows count from the bottom
+    gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fb.fbo)
+    gl.glDrawBuffers(2, [gl.GL_NONE, gl.GL_COLOR_ATTACHMENT1])
+    gl.glViewport(0, 0, W, H)
+    gl.glScissor(x0, H - y1, x1 - x0, y1 - y0)  # = gl_window
+    gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
+    gl.glUseProgram(gls.programs["window_depth"])
+    gl.glDisable(gl.GL_CULL_FACE)
+    projection_loc, _, model_view_loc = gls.uniforms["window_depth"]
+    gl.glUniformMatrix4fv(projection_loc, 1, gl.GL_TRUE, np.ascontiguousarray(P, dtype=np.float32))
+    gl.glUniformMatrix4fv(model_view_loc, 1, gl.GL_TRUE, np.ascontiguousarray(MV, dtype=np.float32))
+    gl.glBindVertexArray(mesh.vao)
+    gl.glDrawElements(gl.GL_TRIANGLES, mesh.n_indices, gl.GL_UNSIGNED_INT, None)
+    gl.glBindVertexArray(0)
+    _read_into(gl.GL_COLOR_ATTACHMENT1, gl_window, gl.GL_RED, gl.GL_FLOAT, out)
+    out[:] = out[::-1].copy()  # bottom-up GL rows -> image rows
+
+
+def _read_into(buffer: int, window: tuple[int, int, int, int], fmt: int, gl_type: int, out: np.ndarray) -> None:
+    """glReadPixels of ``window`` (x0, y0, x1, y1) of ``buffer`` straight into the C-contiguous ``out``."""
     from OpenGL import GL as gl
 
     assert out.flags.c_contiguous
+    x0, y0, x1, y1 = window
     gl.glReadBuffer(buffer)
-    gl.glReadPixels(0, 0, width, height, fmt, gl_type, out.ctypes.data)
+    gl.glReadPixels(x0, y0, x1 - x0, y1 - y0, fmt, gl_type, out.ctypes.data)

@@ -2,25 +2,38 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from cosy_lite.bop.dataset import BopDataset, ImageRecord
 from cosy_lite.bop.io import load_mask
 from cosy_lite.vis.overlay import draw_contour, draw_label, draw_mask, grid, object_colour
 
+if TYPE_CHECKING:
+    from cosy_lite.render.renderer import Renderer
 
-def render_gt_overlay(ds: BopDataset, rec: ImageRecord, renderer=None) -> np.ndarray:
+
+def render_gt_overlay(ds: BopDataset, rec: ImageRecord, renderer: Renderer | None = None) -> np.ndarray:
     """The image with, per GT instance, its stored visible mask filled and the contour of the
-    model re-rendered at the GT pose (so a wrong pose or a wrong mask shows)."""
-    from cosy_lite.render.object_renderer import ObjectRenderer
+    model re-rendered at the GT pose (so a wrong pose or a wrong mask shows).
+
+    ``renderer``: of the dataset's ``models/`` (default: a :class:`PyrenderRenderer` made and closed here).
+    """
+    from cosy_lite.render.renderer import PyrenderRenderer
 
     rgb = ds.load_rgb(rec)
     h, w = rgb.shape[:2]
     if not rec.gt:
         return rgb
-    if renderer is None:
-        renderer = ObjectRenderer({i: ds.load_model(i) for i in {g.obj_id for g in rec.gt}})
-    _, depth = renderer.render([g.obj_id for g in rec.gt], np.stack([g.TCO for g in rec.gt]), rec.camera.K, w, h, depth_only=True)
+    own = renderer is None
+    renderer = PyrenderRenderer.from_dataset(ds) if own else renderer
+    try:
+        depth = renderer.render([g.obj_id for g in rec.gt], np.stack([g.TCO for g in rec.gt]), rec.camera.K, (h, w),
+                                depth_only=True).depth
+    finally:
+        if own:
+            renderer.close()
     out = rgb
     for k, g in enumerate(rec.gt):
         colour = object_colour(g.obj_id)
