@@ -3,7 +3,7 @@
 ``cosy_lite/reference/weights/NAME/``, shipped in the package (or ``$COSY_LITE_MODELS/NAME/``), holds, for the dataset
 NAME (e.g. ``ycbvsynth``), each trained network as ``KIND.safetensors`` or, above
 :data:`MAX_FILE_BYTES`, its shards ``KIND-0000i-of-0000N.safetensors`` (fp16 weights + the training
-config and metadata as JSON, :func:`~cosy_lite.train.checkpoint.save_weights`: loading runs no
+config and metadata as JSON, :func:`~cosy_lite.model_files.checkpoint.save_weights`: loading runs no
 code) with its card ``KIND.json`` (dataset, object ids, exact training command, steps, crops seen,
 wall time, machine, held-out metrics), and ``pipeline.json``: how the set is meant to run (start
 poses, candidates, refiner iterations) and what the whole pipeline measured on the dataset's test split.
@@ -139,7 +139,7 @@ def _same_weights(path: Path | None, ckpt: Any) -> bool:
     """Whether the weights file at ``path`` holds ``ckpt``'s step and tensors (as fp16)."""
     import torch
 
-    from cosy_lite.train.checkpoint import CheckpointError, load_weights
+    from cosy_lite.model_files.checkpoint import CheckpointError, load_weights
 
     if path is None:
         return False
@@ -157,7 +157,7 @@ def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) ->
     ``KIND.safetensors`` (sharded above :data:`MAX_FILE_BYTES`) and its card ``KIND.json``: ``card``
     (command, machine, metrics ...) plus what the checkpoint knows (kind, dataset, object ids, step,
     config, training seconds). Returns (the weights files, the card)."""
-    from cosy_lite.train.checkpoint import load_checkpoint, save_weights, shard_paths
+    from cosy_lite.model_files.checkpoint import load_checkpoint, save_weights, shard_paths
 
     ckpt = load_checkpoint(checkpoint)
     if ckpt.kind not in KINDS:
