@@ -18,7 +18,8 @@ from cosy_lite.bop.detections import Detections, degenerate_boxes
 from cosy_lite.bop.results import read_results_csv
 from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.bop_run import run_on_split
-from cosy_lite.inference.predictor import ObjectModels, Predictor, _objects_renderer
+from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer
+from cosy_lite.inference.predictor import Predictor
 from cosy_lite.model_files.loaders import PoseModel
 
 CROP = (60, 80)
@@ -39,7 +40,7 @@ def dataset(tmp_path_factory) -> BopDataset:
 
 @pytest.fixture(scope="module")
 def predictor(dataset) -> Predictor:
-    objects, renderer, _ = _objects_renderer(ObjectModels(dataset.models_dir), [1, 2], 200, icp=False)
+    objects, renderer, _ = objects_and_renderer(ObjectModels(dataset.models_dir), [1, 2], 200, icp=False)
     return Predictor(PoseModel(_Still(), "coarse", CROP, [1, 2]), None, objects, renderer, n_refiner_iterations=0)
 
 

@@ -310,7 +310,7 @@ def test_inference_net_folds_batchnorm_without_changing_outputs():
 
 
 def test_valid_poses_and_orthonormalise():
-    from cosy_lite.inference.predictor import orthonormalise, valid_poses
+    from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 
     T = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
     T[:, 2, 3] = 0.5
