@@ -183,13 +183,13 @@ def detector_table(ds, tmp: Path, threads: int, warmup: int, repeat: int) -> lis
 
     from bench_inference import pick_image
 
-    from cosy_lite.config import load_config
+    from cosy_lite.config import load_config, packaged_config
     from cosy_lite.export.onnx_export import export_detector
     from cosy_lite.export.onnx_models import OnnxDetector
     from cosy_lite.models.detector import Detector, LabelMap, detect
     from cosy_lite.train.detector_task import DetectorTrainConfig
 
-    cfg = load_config(DetectorTrainConfig, Path(__file__).resolve().parents[1] / "configs" / "detector" / "demo.yaml")
+    cfg = load_config(DetectorTrainConfig, packaged_config("detector", "demo.yaml"))
     torch.manual_seed(0)
     model = Detector(LabelMap(tuple(ds.obj_ids)), cfg.detector).eval()
     export_detector(model, tmp / "detector.onnx")

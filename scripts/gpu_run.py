@@ -66,7 +66,7 @@ class Plan:
                  "loop.log_every=1", "data.val_images=2", "optim.warmup_steps=1", "loop.device=cpu"]
         pose = small + ["loop.batch_size=2", "net.crop_resolution=[64,96]", "data.val_instances=4"]
         det = small + ["loop.batch_size=1", "detector.min_size=120", "detector.max_size=160"]
-        return Plan(device="cpu", synth_args=["--config", str(REPO / "configs/synth/tiny.yaml"), "--workers", "2",
+        return Plan(device="cpu", synth_args=["--config", str(REPO / "cosy_lite/configs/synth/tiny.yaml"), "--workers", "2",
                                               "train.n_images=20", "test.n_images=6"],
                     train_timeout_s=600,
                     overrides={"detector": det, "coarse": pose, "refiner": pose},

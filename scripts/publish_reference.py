@@ -7,7 +7,7 @@ The card gets what the checkpoint knows (kind, dataset, object ids, steps, confi
 plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
 given (merged under "metrics"). Folder: ``--out``, default ``cosy_lite/reference/weights/NAME/`` of this
 checkout (shipped in the package as data; ``$COSY_LITE_MODELS/NAME/`` when that is set), see
-cosy_lite.inference.reference_models.
+cosy_lite.model_files.reference_models.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def default_folder(name: str) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cosy_lite.inference.reference_models import publish
+    from cosy_lite.model_files.reference_models import publish
     from cosy_lite.model_files.checkpoint import load_checkpoint
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -17,9 +17,9 @@ TINY_SYNTH = ["train.n_images=6", "train.views_per_layout=6", "test.n_images=2",
 @pytest.fixture(scope="session")
 def tiny_synth_root(tmp_path_factory) -> Path:
     """``tiny`` synthetic dataset (objects 1, 2, 5, 8): 6 train_pbr images, 2 test images."""
-    from cosy_lite.config import load_config
+    from cosy_lite.config import load_config, packaged_config
     from cosy_lite.synth.generator import SynthConfig, generate
 
     root = tmp_path_factory.mktemp("synth") / "tiny"
-    generate(load_config(SynthConfig, ROOT / "configs" / "synth" / "tiny.yaml", TINY_SYNTH), root, progress=False)
+    generate(load_config(SynthConfig, packaged_config("synth", "tiny.yaml"), TINY_SYNTH), root, progress=False)
     return root

@@ -12,13 +12,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from cosy_lite.config import load_config
+from cosy_lite.config import load_config, packaged_config
 from cosy_lite.errors import BopFormatError, ConfigError, run_reporting_errors
 # (torchvision, imported by the training tasks, before anything renders: see cosy_lite/inference/predictor.py)
 from cosy_lite.train.pose_task import PoseTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-DEMO = ROOT / "configs" / "coarse" / "demo.yaml"
+DEMO = packaged_config("coarse", "demo.yaml")
 
 
 def _train(capsys, *argv: str) -> tuple[int, str]:
@@ -203,7 +203,7 @@ def test_train_py_on_a_dataset_smaller_than_the_held_out_set(tmp_path, capsys, m
     from cosy_lite.synth.generator import SynthConfig, generate
 
     root = tmp_path / "tiny"
-    generate(load_config(SynthConfig, ROOT / "configs" / "synth" / "tiny.yaml",
+    generate(load_config(SynthConfig, packaged_config("synth", "tiny.yaml"),
                          ["train.n_images=6", "train.views_per_layout=6", "test.n_images=1", "test.views_per_layout=1"]),
              root, progress=False)
     rc = train.main(["--dataset", str(root), "--model", model, "--out", str(tmp_path / "run"), "loop.steps=1"])

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from cosy_lite.bop.dataset import BopDataset
-from cosy_lite.config import load_config
+from cosy_lite.config import load_config, packaged_config
 from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
 from cosy_lite.data.backgrounds import BackgroundPool
 from cosy_lite.data.pose_dataset import PoseDataset, collate_poses, split_train_val
@@ -21,7 +21,7 @@ from cosy_lite.errors import BopFormatError
 from cosy_lite.structures import PoseBatch
 from cosy_lite.synth.generator import SynthConfig, generate
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "synth" / "tiny.yaml"
+CONFIG = packaged_config("synth", "tiny.yaml")
 SMALL = ["train.n_images=6", "train.views_per_layout=6", "test.n_images=1", "test.views_per_layout=1"]  # one layout each
 SPLIT = "train_pbr"
 

@@ -23,7 +23,7 @@ import torch
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.predictor import Predictor
 from cosy_lite.models import flow_pose_solver, render_and_compare
-from cosy_lite.inference.reference_models import (ReferenceModelError, fill_arguments, reference_models, reference_names,
+from cosy_lite.model_files.reference_models import (ReferenceModelError, fill_arguments, reference_models, reference_names,
                                          reference_root)
 from cosy_lite.model_files.checkpoint import shard_paths
 
@@ -81,7 +81,7 @@ def test_unknown_or_broken_sets_name_the_problem(tmp_path):
 
 
 def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_path):
-    from cosy_lite.inference.reference_models import publish
+    from cosy_lite.model_files.reference_models import publish
     from cosy_lite.model_files.checkpoint import Checkpoint, load_weights, save_checkpoint
 
     ckpt = Checkpoint(kind="refiner", model={"w": torch.linspace(-1, 1, 12).reshape(3, 4), "n": torch.tensor(7)},

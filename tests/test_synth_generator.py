@@ -11,11 +11,11 @@ import pytest
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import BopDataset
-from cosy_lite.config import load_config
+from cosy_lite.config import load_config, packaged_config
 from cosy_lite.geometry.depth import bbox_from_mask, depth_to_distance, visibility_mask
 from cosy_lite.synth.generator import SynthConfig, generate
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "synth" / "tiny.yaml"
+CONFIG = packaged_config("synth", "tiny.yaml")
 SMALL = ["train.n_images=6", "train.views_per_layout=3", "test.n_images=4", "test.views_per_layout=2"]
 
 

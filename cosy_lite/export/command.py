@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.export.onnx_export import describe, export_models
 
-    from cosy_lite.inference.reference_models import fill_arguments
+    from cosy_lite.model_files.reference_models import fill_arguments
 
     fill_arguments(args)
     if args.detector is None and args.coarse is None and args.refiner is None:

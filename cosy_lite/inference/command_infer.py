@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.inference.icp import IcpConfig
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.inference.reference_models import fill_arguments
+    from cosy_lite.model_files.reference_models import fill_arguments
     from cosy_lite.synth.command import dataset_folder
 
     use_egl()

@@ -204,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.results import PoseEstimate, estimate_to_json, write_results_csv
     from cosy_lite.inference.predictor import TIMING_KEYS, SetupError
-    from cosy_lite.inference.reference_models import fill_arguments
+    from cosy_lite.model_files.reference_models import fill_arguments
     from cosy_lite.render.gl import use_egl
 
     use_egl()

@@ -196,14 +196,14 @@ class Predictor:
         n_candidates: int | None = None, n_refiner_iterations: int | None = None,
         templates_cache: str | Path | None = None,
     ) -> "Predictor":
-        """The shipped reference models ``name`` (:mod:`cosy_lite.inference.reference_models`, e.g.
+        """The shipped reference models ``name`` (:mod:`cosy_lite.model_files.reference_models`, e.g.
         ``"ycbvsynth"``) with the set's inference settings (start poses, candidates, refiner
         iterations) where ``start`` / ``n_candidates`` / ``n_refiner_iterations`` are None.
 
         detector: use the set's detector (False: detections are passed to :meth:`predict`); the
         other arguments as :meth:`from_checkpoints`. Raises ReferenceModelError for an unknown name.
         """
-        from cosy_lite.inference.reference_models import reference_models
+        from cosy_lite.model_files.reference_models import reference_models
 
         ref = reference_models(name)
         start = start or ref.setting("start")

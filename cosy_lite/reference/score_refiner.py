@@ -89,7 +89,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.errors import CosyLiteError
-    from cosy_lite.inference.reference_models import ReferenceModelError, reference_models
+    from cosy_lite.model_files.reference_models import ReferenceModelError, reference_models
     from cosy_lite.render.gl import use_egl
     from cosy_lite.synth.command import dataset_folder
 
