@@ -33,9 +33,9 @@ class PoseModel:
     """A pose network (coarse or refiner) and what it was trained for.
 
     net: the :class:`~cosy_lite.models.pose_net.PoseNet` (eval mode), or any callable
-    ``[B,6,h,w] -> [B,9]`` tensor function such as an
-    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet` (nets with a numpy ``run``, as that one, make
-    the Predictor iterate in numpy: :mod:`~cosy_lite.inference.iterate_np`); crop_resolution: (h, w) px of its input
+    ``[B,6,h,w] -> [B,9]`` (or flow) tensor function such as an
+    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet` (called inside the same loop,
+    :func:`~cosy_lite.models.render_and_compare.iterate_poses`); crop_resolution: (h, w) px of its input
     crops; obj_ids: objects it was trained on; path: the checkpoint or ``.onnx`` file (None if
     built in code).
     """
