@@ -365,6 +365,24 @@ def plot_training(logs: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
+def prepare_templates(cfg: DemoConfig, root: Path) -> None:
+    """With silhouette-template starts: the templates of the test targets' objects rendered into the
+    runs' cache by ``cosy-lite templates``, half of the objects on each core, before the inference runs
+    (side by side, each would render every object itself). Objects already cached are skipped."""
+    targets = root / "test_targets_bop19.json"
+    if "--templates-cache" not in model_args(cfg) or cfg.start != "templates" or not targets.is_file():
+        return  # (no targets: the inference runs say so themselves)
+    from cosy_lite.bop import io
+
+    ids = sorted({t.obj_id for t in io.load_test_targets(targets)})
+    halves = [ids[0::2], ids[1::2]]
+    cache = cfg.runs / "templates"
+    cmds = [_cli("templates", "--dataset", str(root), "--cache", str(cache), "--objects", ",".join(map(str, h)))
+            for h in halves if h]
+    _run_parallel(cmds, [f"silhouette templates of objects {h}" for h in halves if h],
+                  [cfg.out / "logs" / f"templates_{k}.log" for k in range(len(cmds))])
+
+
 def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
     """The unfinished ``cosy-lite infer`` runs side by side (``cfg.threads`` shared between them: much of a
     run is single-threaded rendering, ICP and template matching), then every evaluation."""
@@ -375,6 +393,8 @@ def infer_and_eval(cfg: DemoConfig, root: Path) -> list[tuple[InferRun, dict]]:
         if not all(p.is_file() for p in wanted):
             todo.append(run)
     threads = max(1, cfg.threads // max(1, len(todo)))
+    if len(todo) > 1:
+        prepare_templates(cfg, root)
     cmds, whats = [], []
     for run in todo:
         csv = _csv(cfg, run.method)

@@ -169,6 +169,24 @@ def test_the_two_inference_runs_go_side_by_side_on_one_core_each(tmp_path, monke
     assert kind == "alone" and "oracle" in cmd and cmd[cmd.index("--threads") + 1] == "2"
 
 
+def test_the_templates_are_rendered_ahead_half_of_the_objects_on_each_core(tmp_path, recorded):
+    """Before the two inference runs (each would render every object's templates itself):
+    ``cosy-lite templates`` of the test targets' objects, split in two, into infer's --templates-cache."""
+    cfg = _cfg(tmp_path, train=False)
+    root = tmp_path / "root"
+    root.mkdir()
+    targets = [{"scene_id": 0, "im_id": i, "obj_id": o, "inst_count": 1} for i, o in enumerate([5, 1, 9, 1, 3])]
+    (root / "test_targets_bop19.json").write_text(json.dumps(targets))
+    demo.prepare_templates(cfg, root)
+    assert len(recorded) == 2 and all(_is(c, "templates") for c in recorded)
+    assert [c[c.index("--objects") + 1] for c in recorded] == ["1,5", "3,9"]
+    cache = demo.model_args(cfg)[demo.model_args(cfg).index("--templates-cache") + 1]
+    assert all(c[c.index("--cache") + 1] == cache for c in recorded)
+    recorded.clear()
+    demo.prepare_templates(_cfg(tmp_path, start="coarse"), root)  # trained coarse start: no templates
+    assert recorded == []
+
+
 def test_with_reference_models_inference_uses_them_and_each_network_gets_a_short_run(tmp_path, recorded, monkeypatch):
     cfg = _cfg(tmp_path, train=False)
     monkeypatch.setattr(demo.json, "loads", lambda text: _scores(0.0))

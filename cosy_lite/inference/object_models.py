@@ -78,7 +78,7 @@ def render_shading(coarse: PoseModel | None, refiner: PoseModel | None) -> str:
 
 
 def objects_and_renderer(models: ObjectModels, ids: list[int], n_points: int | None, icp: bool,
-                      shading: str = "flat") -> tuple[Any, Any, Any]:
+                         shading: str = "flat") -> tuple[Any, Any, Any]:
     """(ObjectTable of ``ids``, a renderer of ``models`` with ``shading``, ICP symmetry sets or None)."""
     from cosy_lite.geometry.symmetries import symmetry_transforms
     from cosy_lite.models.object_table import ObjectTable
@@ -91,7 +91,7 @@ def objects_and_renderer(models: ObjectModels, ids: list[int], n_points: int | N
 
 
 def start_templates(start: str, models: ObjectModels, objects: Any, renderer: Any,
-                          cache_dir: str | Path | None) -> SilhouetteTemplates | None:
+                    cache_dir: str | Path | None) -> SilhouetteTemplates | None:
     """The templates for ``start="templates"`` (None otherwise), cached in ``cache_dir`` by the hash
     of each object's mesh file."""
     if start != "templates":

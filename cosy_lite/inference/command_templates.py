@@ -1,0 +1,71 @@
+"""``cosy-lite templates``: render the silhouette templates of some objects into a cache folder.
+
+    cosy-lite templates --dataset ycbvsynth --cache runs/demo/templates [--objects 1,3,5]
+
+``infer.py --start templates --templates-cache DIR`` renders each object's templates on its first
+detection and keeps them in ``DIR``; this command fills ``DIR`` ahead, e.g. for a deployment, or
+split over several processes (``cosy-lite demo`` renders its objects in two processes, one core
+each, before its two inference runs, which would otherwise both render every object). The files
+are the ones the predictor writes (same keys: the mesh file's hash and the template settings), so
+objects already in ``DIR`` are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+
+def _obj_ids(text: str) -> list[int]:
+    try:
+        ids = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected object ids separated by commas, e.g. 1,5") from None
+    if not ids or min(ids) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected positive object ids separated by commas, e.g. 1,5")
+    return ids
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", required=True, help="dataset name (folder under --data-root) or folder (its models/)")
+    p.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
+    p.add_argument("--cache", type=Path, required=True, metavar="DIR", help="the templates folder (--templates-cache of infer)")
+    p.add_argument("--objects", type=_obj_ids, default=None, metavar="IDS",
+                   help="object ids separated by commas (default: every object of models_info.json)")
+
+
+def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = None) -> dict[int, float]:
+    """Render (or find) the templates of ``obj_ids`` (default: all) of the BOP ``models_dir`` in
+    ``cache``; seconds per object. Raises SetupError for an object without a model."""
+    from cosy_lite.inference.object_models import ObjectModels, SetupError, objects_and_renderer, start_templates
+
+    models = ObjectModels(models_dir)
+    ids = sorted(obj_ids) if obj_ids else models.obj_ids
+    unknown = sorted(set(ids) - set(models.obj_ids))
+    if unknown:
+        raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
+    cache.mkdir(parents=True, exist_ok=True)
+    objects, renderer, _ = objects_and_renderer(models, ids, None, icp=False)
+    templates = start_templates("templates", models, objects, renderer, cache)
+    assert templates is not None
+    seconds = {}
+    for obj_id in ids:
+        t = time.perf_counter()
+        templates.templates(obj_id)
+        seconds[obj_id] = time.perf_counter() - t
+    renderer.close()
+    return seconds
+
+
+def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.render.gl import use_egl
+    from cosy_lite.synth.command import dataset_folder
+
+    use_egl()
+    dataset = BopDataset(dataset_folder(args.dataset, args.data_root))
+    seconds = render_templates(dataset.models_dir, args.cache, args.objects)
+    print(f"templates of {len(seconds)} objects in {args.cache} ({sum(seconds.values()):.0f} s: "
+          + ", ".join(f"{i}: {s:.1f}" for i, s in seconds.items()) + ")")
+    return 0
