@@ -5,7 +5,7 @@
 
 The card gets what the checkpoint knows (kind, dataset, object ids, steps, config, training seconds)
 plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
-given (merged under "metrics"). Folder: ``--out``, default ``cosy_lite/reference/weights/NAME/`` of this
+given (merged under "metrics"). Folder: ``--out``, default ``models/NAME/`` of this
 checkout (shipped in the package as data; ``$COSY_LITE_MODELS/NAME/`` when that is set), see
 cosy_lite.model_files.reference_models.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 # the checkout's reference-model folder (not an installed copy's): published sets are committed here
-REFERENCE_DIR = REPO / "cosy_lite" / "reference" / "weights"
+REFERENCE_DIR = REPO / "models"
 
 
 def default_folder(name: str) -> Path:
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", required=True, help="the set (dataset name), e.g. ycbvsynth")
     ap.add_argument("--command", required=True, help="the exact training command(s) that made the checkpoint")
     ap.add_argument("--out", type=Path, default=None, metavar="DIR",
-                    help="the set's folder (default: $COSY_LITE_MODELS/NAME, else cosy_lite/reference/weights/NAME)")
+                    help="the set's folder (default: $COSY_LITE_MODELS/NAME, else models/NAME)")
     ap.add_argument("--world-size", type=int, default=1, help="training processes (DDP)")
     ap.add_argument("--machine", default=f"{platform.machine()} CPU, {platform.node() or 'unknown'}; no GPU")
     ap.add_argument("--note", default="", help="anything else a user should know")

@@ -30,7 +30,7 @@ from cosy_lite.model_files.checkpoint import shard_paths
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "ycbvsynth"
 SIZE_LIMIT_BYTES = 40 * 10**6  # the reference-model folder, all sets together
-REFERENCE_DIR = "cosy_lite/reference/weights/"  # the only weights in the repository (shipped in the package)
+REFERENCE_DIR = "models/"  # the only weights in the repository (installed as cosy_lite/reference/weights/)
 # the first test layouts of ycbvsynth, 2 views each (36 targets of 15 objects)
 TEST_IMAGES = ["test.n_images=4", "test.views_per_layout=2"]
 

@@ -1,6 +1,7 @@
 """Reference models: trained networks kept in the repository, one folder per dataset.
 
-``cosy_lite/reference/weights/NAME/``, shipped in the package (or ``$COSY_LITE_MODELS/NAME/``), holds, for the dataset
+``models/NAME/`` of the repository (installed as the package data ``cosy_lite/reference/weights/NAME/``;
+or ``$COSY_LITE_MODELS/NAME/``) holds, for the dataset
 NAME (e.g. ``ycbvsynth``), each trained network as ``KIND.safetensors`` or, above
 :data:`MAX_FILE_BYTES`, its shards ``KIND-0000i-of-0000N.safetensors`` (fp16 weights + the training
 config and metadata as JSON, :func:`~cosy_lite.model_files.checkpoint.save_weights`: loading runs no
@@ -34,14 +35,16 @@ MAX_FILE_BYTES = 4 * 2**20  # larger weights are sharded: the repository keeps n
 
 
 def reference_root() -> Path:
-    """The folder of the sets: ``$COSY_LITE_MODELS``, else ``weights/`` of the package
-    :mod:`cosy_lite.reference` (package data, found with importlib.resources: installed or not)."""
+    """The folder of the sets: ``$COSY_LITE_MODELS``; else the installed package's data
+    ``cosy_lite/reference/weights/`` (found with importlib.resources); else, in a source checkout,
+    its top-level ``models/`` (the folder that data is installed from, see pyproject.toml)."""
     env = os.environ.get("COSY_LITE_MODELS")
     if env:
         return Path(env)
     from importlib.resources import files
 
-    return Path(str(files("cosy_lite.reference").joinpath("weights")))
+    installed = Path(str(files("cosy_lite.reference").joinpath("weights")))
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "models"
 
 
 def weights_file(folder: Path, kind: str) -> Path | None:
