@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 
 
-def _obj_ids(text: str) -> list[int]:
+def obj_id_list(text: str) -> list[int]:
+    """``--objects 1,5`` -> [1, 5] (argparse type: a usage error for anything else)."""
     try:
         ids = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
@@ -58,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a 'cosy-lite export' folder: the networks in onnxruntime (instead of checkpoints)")
     p.add_argument("--detections", type=Path, default=None, metavar="FILE.json",
                    help="BOP22 detections of this image instead of the detector (all its entries must be one image)")
-    p.add_argument("--objects", type=_obj_ids, default=None, metavar="1,5", help="estimate only these objects")
+    p.add_argument("--objects", type=obj_id_list, default=None, metavar="1,5", help="estimate only these objects")
     p.add_argument("--icp", action="store_true", help="refine with --depth (point-to-plane ICP)")
     p.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
     p.add_argument("--start", default=None, choices=["coarse", "templates"],

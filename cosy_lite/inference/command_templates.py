@@ -16,22 +16,14 @@ import argparse
 import time
 from pathlib import Path
 
-
-def _obj_ids(text: str) -> list[int]:
-    try:
-        ids = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected object ids separated by commas, e.g. 1,5") from None
-    if not ids or min(ids) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected positive object ids separated by commas, e.g. 1,5")
-    return ids
+from cosy_lite.inference.command_predict import obj_id_list
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", required=True, help="dataset name (folder under --data-root) or folder (its models/)")
     p.add_argument("--data-root", type=Path, default=None, help="default: $COSY_LITE_DATA or ./data")
     p.add_argument("--cache", type=Path, required=True, metavar="DIR", help="the templates folder (--templates-cache of infer)")
-    p.add_argument("--objects", type=_obj_ids, default=None, metavar="IDS",
+    p.add_argument("--objects", type=obj_id_list, default=None, metavar="IDS",
                    help="object ids separated by commas (default: every object of models_info.json)")
 
 
