@@ -4,7 +4,8 @@
         --world-size 2 --command "OMP_NUM_THREADS=1 torchrun ... train.py ..." [--metrics X.json ...]
 
 The card gets what the checkpoint knows (kind, dataset, object ids, steps, config, training seconds)
-plus the command, the machine, the items seen (steps x batch x processes) and any metric JSON files
+plus the command, the machine, the items seen (the checkpoint's count, including those of the weights it
+was initialised from with --init; else steps x batch x processes), the --init record and any metric JSON files
 given (merged under "metrics"). Folder: ``--out``, default ``models/NAME/`` of this
 checkout (shipped in the package as data; ``$COSY_LITE_MODELS/NAME/`` when that is set), see
 cosy_lite.model_files.reference_models.
@@ -51,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     batch = int(ckpt.config.get("loop", {}).get("batch_size", 0))
     unit = "images" if ckpt.kind == "detector" else "crops"
     card = {"training_command": args.command, "machine": args.machine, "processes": args.world_size,
-            f"{unit}_seen": ckpt.step * batch * args.world_size, "published": date.today().isoformat(),
+            f"{unit}_seen": ckpt.meta.get("items_seen", ckpt.step * batch * args.world_size),
+            "published": date.today().isoformat(), "init": ckpt.meta.get("init"),
             "source_checkpoint": str(args.checkpoint), "note": args.note,
             "metrics": {p.stem: json.loads(p.read_text()) for p in args.metrics}}
     weights, card_path = publish(args.checkpoint, args.out or default_folder(args.name), card)

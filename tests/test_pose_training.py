@@ -59,3 +59,41 @@ def test_resumed_pose_training_repeats_the_uninterrupted_run(tiny_synth_root, tm
     assert a.step == b.step == 4 and a.meta["obj_ids"] == [1, 2, 5, 8]
     for k in a.model:
         torch.testing.assert_close(a.model[k], b.model[k], rtol=0, atol=0, msg=k)
+
+
+def test_init_starts_from_the_weights_and_the_card_records_it(tiny_synth_root, tmp_path):
+    """--init: the run's first weights are the file's (not a fresh initialisation); its checkpoints say
+    where they came from and count the items behind them, the file's included, also across a resume."""
+    from cosy_lite.model_files.checkpoint import save_weights
+
+    def run(out, steps, init=None, resume=False, seed=0):
+        cfg, task = _task(tiny_synth_root, extra=[f"loop.steps={steps}", f"loop.seed={seed}", "optim.lr=1e-12"])
+        train(task, cfg.loop, cfg.optim, out, config=dataclasses.asdict(cfg), resume=resume, progress=False, init=init)
+        return load_checkpoint(out / "checkpoint.pt", kind="refiner")
+
+    first = run(tmp_path / "a", 2, seed=1)
+    weights = save_weights(tmp_path / "refiner.safetensors", first, dtype=torch.float32)[0]
+    fresh = run(tmp_path / "fresh", 1, seed=2)
+    tuned = run(tmp_path / "b", 1, init=weights, seed=2)
+    key = next(k for k, v in first.model.items() if v.is_floating_point() and v.numel() > 100)
+    # lr 1e-12: one step leaves the weights where they started (BatchNorm statistics aside)
+    assert torch.allclose(tuned.model[key], first.model[key], atol=1e-6)
+    assert not torch.allclose(fresh.model[key], first.model[key], atol=1e-3)
+    assert tuned.meta["init"] == {"path": str(weights), "kind": "refiner", "step": 2, "items_seen": 8}
+    assert tuned.meta["items_seen"] == 8 + 4
+    resumed = run(tmp_path / "b", 3, init=weights, resume=True, seed=2)
+    assert resumed.meta["init"] == tuned.meta["init"] and resumed.meta["items_seen"] == 8 + 12
+
+
+def test_init_with_weights_of_another_network_names_the_file(tiny_synth_root, tmp_path):
+    from cosy_lite.model_files.checkpoint import CheckpointError, save_weights
+
+    cfg, task = _task(tiny_synth_root, extra=["loop.steps=1"])
+    train(task, cfg.loop, cfg.optim, tmp_path / "a", config=dataclasses.asdict(cfg), progress=False)
+    weights = save_weights(tmp_path / "refiner.safetensors", load_checkpoint(tmp_path / "a" / "checkpoint.pt"))[0]
+    cfg, task = _task(tiny_synth_root, extra=["loop.steps=1", "net.norm=group"])
+    with pytest.raises(CheckpointError, match=r"refiner\.safetensors.*does not fit the network"):
+        train(task, cfg.loop, cfg.optim, tmp_path / "b", config=dataclasses.asdict(cfg), progress=False, init=weights)
+    with pytest.raises(CheckpointError, match="expected one of \\['coarse'\\]"):
+        cfg, task = _task(tiny_synth_root, "coarse", ["loop.steps=1"])
+        train(task, cfg.loop, cfg.optim, tmp_path / "c", config=dataclasses.asdict(cfg), progress=False, init=weights)

@@ -90,7 +90,9 @@ def test_training_lowers_loss_and_writes_run_folder(tmp_path):
     assert s.steps_done == 40 and s.last_val["mae"] < 1.0
     assert (tmp_path / "loss.png").stat().st_size > 5000
     ck = load_checkpoint(tmp_path / "checkpoint.pt", kind="toy")
-    assert ck.step == 40 and ck.meta == {"n_out": 3} and ck.config["loop"]["steps"] == 40
+    # the task's meta, and the loop's count of the items behind the weights (40 steps x 8)
+    assert ck.step == 40 and ck.meta == {"n_out": 3, "items_seen": 320, "world_size": 1}
+    assert ck.config["loop"]["steps"] == 40
 
 
 def test_validation_at_start_logs_the_untrained_model_once(tmp_path):
@@ -169,7 +171,7 @@ def test_bad_checkpoints_name_the_file_and_problem(tmp_path):
 
 def test_ddp_two_gloo_processes_match_one_process_with_the_global_batch(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT / "tests")}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",  # a free port
            str(ROOT / "tests" / "toy_task.py"), str(tmp_path / "ddp"), "10", "4"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr[-3000:]

@@ -74,6 +74,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", default=None, help="a YAML config instead of the profile's")
     ap.add_argument("--out", default=None, help="run folder (default runs/DATASET-MODEL)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    ap.add_argument("--init", type=Path, default=None, metavar="WEIGHTS",
+                    help="start from these weights (a reference set's KIND.safetensors or a run's checkpoint.pt "
+                         "of the same network; fine-tuning: a fresh optimiser and step count), recorded in the card")
     ap.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. loop.steps=200 net.backbone=resnet18")
 
 
@@ -130,7 +133,8 @@ def train_on(root: Path, args: argparse.Namespace, cfg: Any | None = None) -> in
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
     print(f"training {args.model} on {root} ({len(task.train_dataset())} training items) -> {out}")
-    summary = train(task, cfg.loop, cfg.optim, out, config=dataclasses.asdict(cfg), resume=args.resume)
+    summary = train(task, cfg.loop, cfg.optim, out, config=dataclasses.asdict(cfg), resume=args.resume,
+                    init=getattr(args, "init", None))
     print(f"done: {summary.steps_done} steps in {summary.seconds / 60:.1f} min ({summary.items_per_s:.1f} items/s); "
           f"checkpoint {summary.checkpoint}")
     for k, v in summary.last_val.items():

