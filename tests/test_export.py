@@ -107,18 +107,35 @@ def test_pose_nets_match_torch_at_batch_1_and_8(tmp_path):
             np.testing.assert_array_equal(session.run(x.numpy()), out.numpy())
 
 
+# Dynamic 8-bit quantisation (per-tensor uint8 activations from each call's range, 8-bit weights):
+# each quantised Conv/MatMul input carries a rounding error of step/sqrt(12), step = range/255, i.e.
+# ~1 % of the RMS of a ReLU activation whose range is ~8x its RMS, and its weights as much again. The
+# errors of the ~20 quantised layers of this resnet18 add in quadrature through BatchNorm-scaled layers
+# of gain ~1: sqrt(2 x 20) x 1 % ~ 6 % of the output's RMS. The bound is 4x that estimate (measured on
+# this project's AVX-512 VNNI/AMX CPU: 3-11 % over 3 networks x 2 inputs x signed/unsigned weights), so
+# kernels that round or saturate differently (AVX2's u8s8 pairs, ARM) stay inside it, while a wrong
+# graph (another network's output: ~140 %, a dropped layer, zeros: 100 %) is far outside. The maximum
+# difference is no statistic to bound: one outlier element of 8 x 9 decides it.
+INT8_RELATIVE_RMS_BOUND = 0.25
+
+
 def test_int8_pose_net_is_close_to_fp32(export):
+    from cosy_lite.export.quantize import relative_rms_error
+
     entry = Manifest.read(export["models"]).models["refiner.int8"]
     assert entry.quantization == "int8" and entry.check["batch"] == 8
+    assert entry.check["relative_rms_error"] <= INT8_RELATIVE_RMS_BOUND
     fp32 = OnnxPoseNet(export["models"] / "refiner.onnx", threads=1)
     int8 = OnnxPoseNet(export["models"] / "refiner.int8.onnx", threads=1)
+    coarse = OnnxPoseNet(export["models"] / "coarse.onnx", threads=1)  # another network of the same shape
     assert int8.quantization == "int8" and int8.obj_ids == fp32.obj_ids
-    x = np.random.default_rng(0).random((8, 6, *CROP), dtype=np.float32)
-    ref, out = fp32.run(x), int8.run(x)
-    assert np.abs(ref).max() > 0.05
-    # Dynamic 8-bit activations and weights: a few % of the output's range (measured 0.03 of 0.8).
-    assert np.abs(out - ref).max() <= 0.1 * np.abs(ref).max()
-    assert entry.check["max_abs_diff_vs_fp32"] <= 0.1 * entry.check["max_abs_output"]
+    for seed in range(3):
+        x = np.random.default_rng(seed).random((8, 6, *CROP), dtype=np.float32)
+        ref, out = fp32.run(x), int8.run(x)
+        assert np.abs(ref).max() > 0.05  # not the zero output of an untrained head
+        assert relative_rms_error(out, ref) <= INT8_RELATIVE_RMS_BOUND, seed
+        # the statistic separates a wrong network: the bound is no formality
+        assert relative_rms_error(coarse.run(x), ref) > 3 * INT8_RELATIVE_RMS_BOUND, seed
 
 
 def _images() -> list[np.ndarray]:

@@ -3,7 +3,7 @@
 Weights are stored as 8-bit integers, activations are quantised per call from their observed range
 (no calibration data). The cost in accuracy is measured right away: the quantised and the fp32
 graph run on the same random batch and the largest output difference is recorded in the
-manifest entry (``check.max_abs_diff_vs_fp32``). Unsigned weights (``QUInt8``) are the default:
+manifest entry (``check.max_abs_diff_vs_fp32``, ``check.relative_rms_error``). Unsigned weights (``QUInt8``) are the default:
 on the project's x86 CPU onnxruntime's ``ConvInteger`` ran them ~2x faster than signed ones, at
 the same error; both were slower than fp32 there (see ``bench/RESULTS.md``).
 """
@@ -42,8 +42,16 @@ def quantize_pose_net_int8(src: Path, dst: Path, entry: ModelEntry, config: dict
     runs = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {entry.input_name: x})[0]
             for p in (src, dst)]
     out.check = {"batch": CHECK_BATCH, "max_abs_diff_vs_fp32": float(np.abs(runs[1] - runs[0]).max()),
-                 "max_abs_output": float(np.abs(runs[0]).max())}
+                 "max_abs_output": float(np.abs(runs[0]).max()),
+                 "relative_rms_error": relative_rms_error(runs[1], runs[0])}
     return out
+
+
+def relative_rms_error(out: np.ndarray, ref: np.ndarray) -> float:
+    """RMS of ``out - ref`` over the RMS of ``ref``: the size of the quantisation noise relative to the
+    signal (0: equal; about 1.4: an unrelated output of the same size)."""
+    ref64 = ref.astype(np.float64)
+    return float(np.sqrt(np.mean((out.astype(np.float64) - ref64) ** 2) / max(np.mean(ref64 ** 2), 1e-30)))
 
 
 # name -> quantiser(src, dst, fp32 entry, config) -> entry
