@@ -214,7 +214,11 @@ def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
     points = task.objects.points[rows]
     with torch.no_grad():
         poses = iterate_poses(net.eval(), batch.rgb.float() / 255, batch.K, TCO_in, batch.obj_ids.tolist(), points,
-                              task.renderer, 2, (96, 128))
+                              task.renderer, 1, (96, 128))
     e0 = pose_errors(TCO_in, batch.TCO, points, task.objects.symmetries[rows], task.objects.sym_mask[rows])
     e1 = pose_errors(poses[-1], batch.TCO, points, task.objects.symmetries[rows], task.objects.sym_mask[rows])
-    assert e1.adds_m.mean() < 0.8 * e0.adds_m.mean(), (e0.adds_m, e1.adds_m)
+    # One iteration from the input poses it was fitted on (measured: ADD-S 0.033 -> 0.013 m on average,
+    # rotation 15-39 -> 2-4 deg). A second iteration starts from poses it never saw, where a net fitted
+    # to 4 crops may drift in depth; that was this test's coin toss (0.0284 against 0.0261 once).
+    assert bool((e1.adds_m < e0.adds_m).all()) and e1.adds_m.mean() < 0.6 * e0.adds_m.mean(), (e0.adds_m, e1.adds_m)
+    assert e1.rot_deg.median() < 0.5 * e0.rot_deg.median(), (e0.rot_deg, e1.rot_deg)
