@@ -9,6 +9,8 @@ The folder is named ``tiny`` by default, a dataset of the parameter table (test:
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 from pathlib import Path
 from typing import Any, Callable
 
@@ -149,3 +151,31 @@ def write_tiny_bop(parent: Path, name: str = NAME) -> Path:
         {"im_id": i, "inst_count": c, "obj_id": o, "scene_id": s} for s, i, o, c in TARGETS
     ])
     return root
+
+
+def write_huge_png(path: Path, width: int = 20000, height: int = 20000) -> Path:
+    """A valid black 1-bit PNG of ``width`` x ``height`` pixels, written without holding the image:
+    its rows are compressed block by block (~50 kB on disk and 0.3 s for 20000 x 20000; decoded, it
+    would be 400 MB of grey pixels, 1.2 GB as RGB)."""
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    rows_per_block = 1000
+    block = (b"\0" * (1 + (width + 7) // 8)) * rows_per_block  # filter byte + packed bits, per row
+    z = zlib.compressobj()
+    data = b"".join(z.compress(block) for _ in range(height // rows_per_block))
+    data += z.compress(block[:(height % rows_per_block) * (len(block) // rows_per_block)]) + z.flush()
+    header = struct.pack(">IIBBBBB", width, height, 1, 0, 0, 0, 0)  # 1-bit greyscale, no interlace
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", data) + chunk(b"IEND", b""))
+    return path
+
+
+def forbid_decoding(monkeypatch: Any, path: Path) -> None:
+    """Make decoding the image ``path`` with OpenCV an error (a check that must come from the header)."""
+    imread = cv2.imread
+
+    def guarded(name: str, *args: Any) -> Any:
+        if Path(name) == Path(path):
+            raise AssertionError(f"{name} was decoded")
+        return imread(name, *args)
+    monkeypatch.setattr(cv2, "imread", guarded)

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from bop_fixtures import GT, edit_json, scene_dir, write_models, write_tiny_bop
+from bop_fixtures import GT, edit_json, forbid_decoding, scene_dir, write_huge_png, write_models, write_tiny_bop
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import BopDataset
@@ -108,6 +108,8 @@ CORRUPTIONS = {
                          "bit depth", "'RGB'"),
     "depth-wrong-size": (_rgb_depth("depth", 1, np.full((240, 320), 7000, np.uint16)), f"{SCENE}/depth/000001.png",
                          "size", "320x240 pixels, expected 640x480"),
+    "rgb-over-pixel-limit": (lambda root: write_huge_png(scene_dir(root) / "rgb" / "000001.png"), f"{SCENE}/rgb/000001.png",
+                             "size", "20000 x 20000 pixels (400 MP): more than the limit of 40 MP"),
     "gt-rotation-not-orthonormal": (_json("scene_gt.json", lambda d: d["1"][1]["cam_R_m2c"].__setitem__(0, 3.0)),
                                     f"{SCENE}/scene_gt.json", "1[1].cam_R_m2c", "not a rotation matrix"),
     "gt-rotation-reflection": (_json("scene_gt.json", lambda d: d["0"][0].update(
@@ -230,6 +232,16 @@ def test_missing_depth_scale_is_not_assumed_silently(root: Path, capsys):
     rc, text = _cli(capsys, "check-dataset", str(root))
     where = f"{scene_dir(root) / 'scene_camera.json'} [depth_scale]"
     assert rc == 0 and f"WARNING {where}: missing for image ids 1 although depth images exist: 1.0 assumed" in text
+
+
+def test_show_refuses_a_mask_over_the_pixel_limit_before_decoding_it(root: Path, capsys, monkeypatch):
+    mask = write_huge_png(scene_dir(root) / "mask_visib" / "000000_000000.png")
+    forbid_decoding(monkeypatch, mask)
+    rc, text = _cli(capsys, "show", str(root), "--split", "test", "--out", str(root.parent / "show.png"))
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in text, text
+    assert lines[0].startswith(f"cosy-lite show: error: {mask} [size]: 20000 x 20000 pixels (400 MP): more than the "
+                               "limit of 40 MP"), lines[0]
 
 
 def test_infer_refuses_depth_of_another_size(root: Path):

@@ -1,16 +1,18 @@
 """Bad detections at inference: a box of zero width/height (or NaN) is skipped with a warning, never
 a pose hundreds of metres away; detection files of another split, masks of another size, broken
-entries and missing files are one error naming the file and the field."""
+entries and missing files are one error naming the file and the field. An image over the pixel
+limit (``cosy-lite predict``, ``infer.py``) is refused from its header, before it is decoded."""
 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from bop_fixtures import write_tiny_bop
+from bop_fixtures import forbid_decoding, scene_dir, write_huge_png, write_tiny_bop
 from torch import nn
 
 from cosy_lite.bop.dataset import BopDataset
@@ -100,7 +102,9 @@ def test_zero_size_box_in_a_detections_file_is_skipped_and_reported(dataset, pre
     ([_entry(score=float("nan"))], "[0].score", "finite number"),
     ([_entry(image_id="0")], "[0].image_id", "expected an integer"),
     ({"scene_id": 0}, "", "expected a JSON list"),
-], ids=["other-split", "negative-width", "unknown-object", "nan-score", "string-id", "not-a-list"])
+    ([_entry(segmentation={"size": [20000, 20000], "counts": "0"})], "[0].segmentation.size",
+     "20000 x 20000 pixels: more than the limit of 40 MP"),
+], ids=["other-split", "negative-width", "unknown-object", "nan-score", "string-id", "not-a-list", "huge-mask"])
 def test_broken_detections_file_names_the_field(dataset, predictor, tmp_path, entries, fld, words):
     path = _detections_file(tmp_path / "det.json", entries)
     with pytest.raises(BopFormatError) as e:
@@ -123,3 +127,52 @@ def test_masks_of_another_size_are_refused(dataset, predictor, tmp_path):
 def test_missing_detections_file(dataset, predictor, tmp_path):
     with pytest.raises(BopFormatError, match=r"nothere\.json \[--detections\]: detections file not found"):
         run_on_split(predictor, dataset, tmp_path, detections=tmp_path / "nothere.json", progress=False)
+
+
+# ----------------------------------------------------------------------------- images over the pixel limit
+
+
+@pytest.fixture(scope="module")
+def huge_png(tmp_path_factory) -> Path:
+    """20000 x 20000 pixels in a 50 kB file (decoded: 1.2 GB as RGB)."""
+    return write_huge_png(tmp_path_factory.mktemp("huge") / "huge.png")
+
+
+def _one_error_line(err: str, prog: str, path: Path) -> None:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"{prog}: error: {path} [size]: 20000 x 20000 pixels (400 MP): more than the limit "
+                               "of 40 MP"), lines[0]
+
+
+@pytest.mark.parametrize("which", ["rgb", "depth"])
+def test_predict_refuses_an_image_over_the_pixel_limit_from_its_header(dataset, huge_png, tmp_path, capsys,
+                                                                       monkeypatch, which):
+    from cosy_lite.cli import main
+
+    rec = next(dataset.images("test"))
+    camera = tmp_path / "camera.json"
+    camera.write_text(json.dumps({"cam_K": rec.camera.K.reshape(-1).tolist()}))  # no width/height to compare with
+    images = {"rgb": huge_png, "depth": rec.depth_path} if which == "rgb" else {"rgb": rec.rgb_path, "depth": huge_png}
+    forbid_decoding(monkeypatch, huge_png)
+    rc = main(["predict", "--rgb", str(images["rgb"]), "--depth", str(images["depth"]), "--camera", str(camera),
+               "--models", str(dataset.root), "--coarse", str(tmp_path / "c.pt"), "--detections",
+               str(tmp_path / "d.json"), "--out", str(tmp_path / "out")])
+    assert rc == 2
+    _one_error_line(capsys.readouterr().err, "cosy-lite predict", huge_png)
+
+
+@pytest.mark.parametrize("which", ["rgb", "depth"])
+def test_infer_refuses_a_dataset_image_over_the_pixel_limit(huge_png, tmp_path, capsys, monkeypatch, which):
+    import infer
+    from test_inference import _save_pose_ckpt
+
+    root = write_tiny_bop(tmp_path)
+    image = scene_dir(root) / which / "000000.png"
+    shutil.copyfile(huge_png, image)
+    forbid_decoding(monkeypatch, image)
+    coarse = _save_pose_ckpt(tmp_path / "coarse.pt", "coarse", obj_ids=[1, 2])
+    rc = infer.main(["--dataset", str(root), "--coarse", str(coarse), "--detections", "oracle", "--n-refiner-iters",
+                     "0", "--out", str(tmp_path / "out"), "--no-progress", *(["--icp"] if which == "depth" else [])])
+    assert rc == 2
+    _one_error_line(capsys.readouterr().err, "infer.py", image)

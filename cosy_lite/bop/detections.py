@@ -184,6 +184,9 @@ def _segmentation(path: Path, fld: str, v: Any) -> dict[str, Any]:
     size = v["size"]
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s > 0 for s in size)):
         raise BopFormatError(path, fld + ".size", f"expected [H, W] positive ints, got {size!r}")
+    if size[0] * size[1] > io.MAX_IMAGE_PIXELS:  # a mask is decoded to [H, W]: the limit of every image read
+        raise BopFormatError(path, fld + ".size", f"{size[1]} x {size[0]} pixels: more than the limit of "
+                             f"{io.MAX_IMAGE_PIXELS / 1e6:.0f} MP (cosy_lite.bop.io.MAX_IMAGE_PIXELS)")
     counts = v["counts"]
     if not isinstance(counts, str) and not (isinstance(counts, list) and all(isinstance(c, int) for c in counts)):
         raise BopFormatError(path, fld + ".counts", "expected a compressed RLE string or a list of ints")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,11 @@ MM_PER_M = 1000.0  # multiply (not divide by MM) so 0.3 m is written as 300.0
 MIN_PLAUSIBLE_T_MM = 20.0  # a cam_t_m2c shorter than this is almost surely in metres
 MIN_PLAUSIBLE_DIAMETER_MM = 5.0  # a model smaller than this is almost surely in metres
 NO_MESH = "no vertices with faces (an empty mesh or a point cloud); BOP models are triangle meshes"
+# The most pixels (width x height) of any image read (colour, depth, mask): 40 MP, above an 8K frame
+# (7680x4320 = 33 MP), far above any BOP dataset's. Checked from the file's header before anything
+# is decoded, so a small file that claims a huge image never reaches a large allocation.
+MAX_IMAGE_PIXELS = 40_000_000
+_PIL_LIMIT = threading.Lock()  # guards PIL's global limit while image_header lifts it
 
 
 # ----------------------------------------------------------------------------- records
@@ -540,11 +546,40 @@ def targets_to_json(targets: list[Target]) -> list[dict[str, int]]:
 # ----------------------------------------------------------------------------- images
 
 
+def image_header(path: str | Path) -> tuple[tuple[int, int], str]:
+    """((width, height), PIL mode) of an image file, from its header only (nothing is decoded).
+
+    Raises BopFormatError naming the file when the header cannot be read, or when the image has
+    more than :data:`MAX_IMAGE_PIXELS` pixels. Every reader of images here calls it first.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        # PIL refuses very large images itself (DecompressionBombError) without saying their size;
+        # its limit is lifted for the header, ours below applies to every size
+        with _PIL_LIMIT:
+            pil_limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                with Image.open(path) as im:
+                    size, mode = (int(im.size[0]), int(im.size[1])), im.mode
+            finally:
+                Image.MAX_IMAGE_PIXELS = pil_limit
+    except (OSError, UnidentifiedImageError, ValueError) as e:
+        raise BopFormatError(path, "", f"cannot read the image header: {e}") from None
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise BopFormatError(path, "size", f"{size[0]} x {size[1]} pixels ({size[0] * size[1] / 1e6:.0f} MP): more than "
+                             f"the limit of {MAX_IMAGE_PIXELS / 1e6:.0f} MP (cosy_lite.bop.io.MAX_IMAGE_PIXELS = "
+                             f"{MAX_IMAGE_PIXELS} pixels)")
+    return size, mode
+
+
 def load_image(path: str | Path) -> np.ndarray:
     """Colour image as RGB uint8 [H,W,3] (grayscale images are repeated to 3 channels)."""
     path = Path(path)
     if not path.is_file():
         raise BopFormatError(path, "", "image file not found")
+    image_header(path)
     im = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if im is None:
         raise BopFormatError(path, "", "cannot decode image")
@@ -572,6 +607,7 @@ def load_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise BopFormatError(path, "", "depth file not found")
+    image_header(path)
     d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if d is None or d.ndim != 2:
         what = "cannot decode the image" if d is None else f"{d.shape[2]} channels"
@@ -606,6 +642,7 @@ def load_mask(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise BopFormatError(path, "", "mask file not found")
+    image_header(path)
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if m is None:
         raise BopFormatError(path, "", "cannot decode mask")

@@ -199,18 +199,6 @@ def _list_images(folder: Path) -> dict[int, Path]:
     return {int(p.stem): p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit()}
 
 
-def _image_header(path: Path, out: _Collector) -> tuple[tuple[int, int], str] | None:
-    """((width, height), PIL mode) from the image header only (PIL opens lazily, no decoding)."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            return im.size, im.mode
-    except (OSError, UnidentifiedImageError, ValueError) as e:
-        out.error(path, "", f"cannot read the image header: {e}")
-        return None
-
-
 def _check_scene_files(scene_dir: Path, obj_ids: set[int] | None, out: _Collector) -> tuple[dict | None, dict | None]:
     """Parse the three scene files, check ids across them; return (cameras, gts)."""
     paths = {f: scene_dir / f for f in SCENE_FILES}
@@ -279,7 +267,7 @@ def _check_scene_images(
     for im_id in im_ids:
         sizes = {}
         for sub in (color, "depth"):
-            if (p := found[sub].get(im_id)) is None or (header := _image_header(p, out)) is None:
+            if (p := found[sub].get(im_id)) is None or (header := out.load(io.image_header, p)) is None:
                 continue
             size, mode = header
             if sub == "depth" and mode not in DEPTH_MODES:

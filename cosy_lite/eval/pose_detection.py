@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cosy_lite.bop.io import image_header
 from cosy_lite.bop.results import PoseEstimate
 from cosy_lite.eval.scoring import MSPD_THRESHOLDS_PX, MSSD_THRESHOLDS, match_greedy
 
@@ -259,7 +260,7 @@ def evaluate_6d_detection(dataset_root: str | Path, results_csv: str | Path, spl
 
             raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
                                  "GT info (visib_fract) needed for every GT instance")
-        width = sp.im_size[0] if sp is not None else _image_width(rec.rgb_path)
+        width = sp.im_size[0] if sp is not None else image_header(rec.rgb_path)[0][0]
         for o in dict.fromkeys(g.obj_id for g in rec.gt):
             ests = by_image_obj.get((scene_id, im_id, o), [])
             gt_idx = [i for i, g in enumerate(rec.gt) if g.obj_id == o]
@@ -276,13 +277,6 @@ def evaluate_6d_detection(dataset_root: str | Path, results_csv: str | Path, spl
     n_eval = sum(len(g.scores) for g in groups)
     return Detection6DResult(ds.name, split, str(results_csv), len(estimates), dropped, n_eval,
                              average_time(kept), scores, time.perf_counter() - t0, groups)
-
-
-def _image_width(path: Path) -> int:
-    from PIL import Image
-
-    with Image.open(path) as im:
-        return int(im.size[0])
 
 
 def format_table(result: Detection6DResult) -> str:
