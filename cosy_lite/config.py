@@ -8,6 +8,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -42,19 +43,25 @@ def _failing_key(cfg: DictConfig, data: DictConfig) -> str:
     return ""
 
 
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """What a PyYAML error says, on one line. OmegaConf reads files and override values with PyYAML's
+    safe loader: a tag that asks for a Python object (``!!python/object/apply:...``) is refused, never run."""
+    mark = getattr(e, "problem_mark", None)
+    where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+    if isinstance(e, yaml.constructor.ConstructorError):
+        return f"YAML tag refused{where}: {problem} (config values are plain YAML: numbers, strings, lists, mappings)"
+    return f"malformed YAML{where}: {problem}"
+
+
 def _load_yaml(path: Path) -> DictConfig:
     """One YAML file as a mapping; a missing, unreadable or malformed file raises ConfigError."""
-    import yaml
-
     if not path.is_file():
         raise ConfigError(path, "", "config file not found")
     try:
         loaded = OmegaConf.load(path)
     except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ConfigError(path, "", f"malformed YAML{where}: {problem}") from None
+        raise ConfigError(path, "", _yaml_problem(e)) from None
     except UnicodeDecodeError as e:
         raise ConfigError(path, "", f"not a UTF-8 text file ({e.reason} at byte {e.start})") from None
     except OmegaConfBaseException as e:
@@ -69,7 +76,8 @@ def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides
     """Build a ``cls`` instance: dataclass defaults <- YAML file <- ``["a.b=1", ...]`` overrides.
 
     Raises ConfigError naming the file or the override, the key and what was expected: a missing
-    or malformed YAML file, an unknown key, a value of the wrong type, an override without ``=``.
+    or malformed YAML file or override value (a YAML tag that would build a Python object is refused,
+    nothing runs), an unknown key, a value of the wrong type, an override without ``=``.
     """
     cfg = OmegaConf.structured(cls)
     if yaml_path is not None:
@@ -85,8 +93,10 @@ def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides
         key, sep, _ = item.partition("=")
         if not sep or not key.strip():
             raise ConfigError(where, "", "expected key=value, e.g. loop.steps=200")
-        try:
+        try:  # the value is parsed by the same safe YAML loader as the files
             cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
+        except yaml.YAMLError as e:
+            raise ConfigError(where, key.strip(), _yaml_problem(e)) from None
         except OmegaConfBaseException as e:
             full_key, msg = _omegaconf_problem(e)
             raise ConfigError(where, full_key or key, msg) from None

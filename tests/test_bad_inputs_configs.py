@@ -74,7 +74,9 @@ def _yaml(tmp_path: Path, text: str | bytes) -> Path:
     ("loop: 5\n", ["[loop]", "LoopConfig"]),
     ("optim:\n  lr: -0.1\n", ["[optim.lr]", "> 0"]),
     (b"loop:\n  device: \xff\xfe\n", ["not a UTF-8 text file"]),
-], ids=["broken", "a-list", "unknown-key", "wrong-type", "wrong-shape", "bad-value", "not-utf8"])
+    ("loop:\n  steps: !!python/object/apply:os.system [echo hi]\n",
+     ["YAML tag refused at line 2 column 10", "python/object/apply:os.system"]),
+], ids=["broken", "a-list", "unknown-key", "wrong-type", "wrong-shape", "bad-value", "not-utf8", "python-tag"])
 def test_train_py_bad_config_file(tmp_path, capsys, text, words):
     path = _yaml(tmp_path, text)
     rc, err = _train(capsys, "--config", str(path))
@@ -112,6 +114,35 @@ def test_cosy_lite_generate_bad_override(tmp_path, capsys):
     rc = main(["generate", "--out", str(tmp_path / "d"), "train.n_imagez=3"])
     assert rc == 2
     _one_error(capsys.readouterr().err, "cosy-lite generate: error:", "[train.n_imagez]")
+    assert not (tmp_path / "d").exists()
+
+
+def _python_tag(marker: Path) -> str:
+    """A YAML value that would run ``touch MARKER`` if it were loaded with PyYAML's unsafe loader."""
+    return f"!!python/object/apply:os.system ['touch {marker}']"
+
+
+@pytest.mark.parametrize("prog, key", [("train.py", "loop.steps"), ("cosy-lite generate", "train.n_images"),
+                                       ("infer.py", "max_translation")], ids=["train", "generate", "infer-icp-set"])
+def test_a_python_tag_in_an_override_is_one_message_and_never_runs(tmp_path, capsys, prog, key):
+    import infer
+    import train
+    from cosy_lite.cli import main
+
+    marker = tmp_path / "PWNED"
+    override = f"{key}={_python_tag(marker)}"
+    if prog == "train.py":
+        rc = train.main(["--dataset", str(tmp_path / "none"), "--model", "refiner", override])
+    elif prog == "cosy-lite generate":
+        rc = main(["generate", "--out", str(tmp_path / "d"), override])
+    else:
+        rc = infer.main(["--dataset", str(tmp_path), "--coarse", "c.pt", "--detections", "oracle", "--icp",
+                         "--icp-set", override])
+    assert rc == 2
+    _one_error(capsys.readouterr().err, f"{prog}: error: ", f"command-line override {override!r} [{key}]: YAML tag "
+               "refused at line 1 column 1: could not determine a constructor for the tag "
+               "'tag:yaml.org,2002:python/object/apply:os.system'")
+    assert not marker.exists(), "the override ran a command"
     assert not (tmp_path / "d").exists()
 
 

@@ -128,9 +128,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         icp_config = load_config(IcpConfig, None, args.icp_set)
-    except (ConfigError, ValueError) as e:
-        print(f"error: --icp-set: {e}", file=sys.stderr)
-        return 2
+    except ConfigError as e:  # named with the flag that gave the overrides
+        raise ConfigError(f"--icp-set: {e.where}", e.field, e.problem) from None
     method = args.method.replace("_", "")
     if method != args.method:
         print(f"note: method name {args.method!r} written as {method!r} (BOP file names have one '_')")
