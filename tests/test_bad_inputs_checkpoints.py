@@ -1,11 +1,16 @@
 """Hostile and broken checkpoints: a pickle payload never runs (load_checkpoint, infer.py --coarse,
 train.py --resume, cosy-lite export), every broken file gives one message naming it and exit 2,
-and what save_checkpoint writes loads weights-only (dataclasses and paths stored as plain data)."""
+and what save_checkpoint writes loads weights-only (dataclasses and paths stored as plain data).
+Reference-model sets whose files disagree with their cards (missing, extra, resized or altered
+weights files, mistyped card fields) and weights files with mistyped metadata are one message
+naming the file and the field."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -206,3 +211,105 @@ def test_save_refuses_what_cannot_be_loaded_weights_only(tmp_path):
     with pytest.raises(TypeError, match=r"checkpoint\.meta\.hook: a .*Payload cannot be stored"):
         save_checkpoint(tmp_path / "ck.pt", Checkpoint("coarse", {}, {}, 0, meta={"hook": Payload(tmp_path / "m")}))
     assert not list(tmp_path.iterdir())  # no checkpoint, no temporary file
+
+
+# ----------------------------------------------------------------------------- reference-model cards and metadata
+
+SET = "ycbvsynth"
+
+
+def _edit_card(kind: str, change):
+    def apply(folder: Path) -> None:
+        card = json.loads((folder / f"{kind}.json").read_text())
+        change(card)
+        (folder / f"{kind}.json").write_text(json.dumps(card))
+    return apply
+
+
+def _flip_last_byte(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF  # tensor data: the file stays readable, only its hash changes
+    path.write_bytes(bytes(data))
+
+
+# (change to a copy of the shipped set, the file the message names, its field, words of the problem)
+CARD_PROBLEMS = {
+    "weights-file-missing": (lambda f: (f / "refiner.safetensors").unlink(), "refiner.json", "weights",
+                             "names refiner.safetensors, which is not in"),
+    "shard-missing": (lambda f: (f / "detector-00002-of-00003.safetensors").unlink(), "detector.json", "weights",
+                      "names detector-00002-of-00003.safetensors, which is not in"),
+    "card-names-other-shards": (_edit_card("detector", lambda c: c.update(
+        weights=[f"detector-0000{i}-of-00004.safetensors" for i in range(1, 5)])), "detector.json", "weights",
+        "names detector-00001-of-00004.safetensors, which is not in"),
+    "extra-shard": (lambda f: shutil.copyfile(f / "detector-00003-of-00003.safetensors",
+                                              f / "detector-00004-of-00004.safetensors"), "detector.json", "weights",
+                    "detector-00004-of-00004.safetensors is in"),
+    "size-differs": (lambda f: (f / "refiner.safetensors").open("ab").write(b"\0"), "refiner.json",
+                     "files[refiner.safetensors].bytes", "is 1963787 bytes, the card says 1963786"),
+    "sha256-differs": (lambda f: _flip_last_byte(f / "detector-00003-of-00003.safetensors"), "detector.json",
+                       "files[detector-00003-of-00003.safetensors].sha256", "the card says 91fe372a"),
+    "obj-ids-a-string": (_edit_card("refiner", lambda c: c.update(obj_ids="1,2,3")), "refiner.json", "obj_ids",
+                         "expected a list of positive integers, got str '1,2,3'"),
+    "weights-a-string": (_edit_card("refiner", lambda c: c.update(weights="refiner.safetensors")), "refiner.json",
+                         "weights", "expected a list of the weights file names, got str"),
+    "files-field-missing": (_edit_card("refiner", lambda c: c.pop("files")), "refiner.json", "files", "missing"),
+}
+
+
+@pytest.fixture
+def set_copy(tmp_path, monkeypatch) -> Path:
+    """A copy of the shipped set ``ycbvsynth`` under ``$COSY_LITE_MODELS`` (the shipped files stay as they are)."""
+    from cosy_lite.model_files.reference_models import reference_root
+
+    folder = tmp_path / "sets" / SET
+    shutil.copytree(reference_root() / SET, folder)
+    monkeypatch.setenv("COSY_LITE_MODELS", str(folder.parent))
+    return folder
+
+
+def _predict_pretrained(tmp_path: Path, capsys) -> tuple[int, list[str], str]:
+    from cosy_lite.cli import main
+
+    rc = main(["predict", "--pretrained", SET, "--rgb", str(tmp_path / "rgb.png"), "--camera", str(tmp_path / "K.json"),
+               "--models", str(tmp_path), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    return rc, [line for line in err.splitlines() if line.strip()], err
+
+
+@pytest.mark.parametrize("name", list(CARD_PROBLEMS))
+def test_a_set_whose_files_disagree_with_its_card_is_one_message(set_copy, tmp_path, capsys, name):
+    change, card, fld, words = CARD_PROBLEMS[name]
+    change(set_copy)
+    rc, lines, err = _predict_pretrained(tmp_path, capsys)
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"cosy-lite predict: error: {set_copy / card}: field '{fld}': ") and words in lines[0], lines[0]
+
+
+def test_a_weights_file_without_its_card_is_refused(set_copy, tmp_path, capsys):
+    (set_copy / "refiner.json").unlink()
+    rc, lines, err = _predict_pretrained(tmp_path, capsys)
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"cosy-lite predict: error: {set_copy / 'refiner.safetensors'}: no card refiner.json"), lines[0]
+
+
+@pytest.mark.parametrize("kind, meta, fld, words", [
+    ("refiner", {"obj_ids": "1,2,3"}, "meta.obj_ids", "expected a list of positive integers, got str '1,2,3'"),
+    ("refiner", {"obj_ids": [1, 0]}, "meta.obj_ids", "expected a list of positive integers, got list [1, 0]"),
+    ("refiner", {"net": "flow"}, "meta.net", "expected a JSON object (the PoseNetConfig), got str 'flow'"),
+    ("detector", {"label_map": {"obj_ids": "1,2"}}, "meta.label_map",
+     "expected a JSON object {'obj_ids': a list of positive integers}, got dict"),
+], ids=["obj-ids-a-string", "obj-id-zero", "net-a-string", "label-map-ids-a-string"])
+def test_mistyped_metadata_of_a_weights_file_names_the_field(tmp_path, capsys, kind, meta, fld, words):
+    from cosy_lite.cli import main
+    from cosy_lite.model_files.checkpoint import load_weights, save_weights
+    from cosy_lite.model_files.reference_models import reference_models
+
+    ckpt = load_weights(reference_models(SET).path(kind))
+    ckpt.meta.update(meta)
+    bad = save_weights(tmp_path / f"{kind}.safetensors", ckpt)[0]
+    rc = main(["export", f"--{kind}", str(bad), "--out", str(tmp_path / "onnx")])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"cosy-lite export: error: {bad}: field '{fld}': {words}"), lines[0]
+    assert not (tmp_path / "onnx").exists()

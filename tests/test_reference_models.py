@@ -11,6 +11,7 @@ errors the learned refiner absorbs: those are the oracle test's, ``test_oracle_l
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
 import subprocess
@@ -48,6 +49,8 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
         files = shard_paths(path)
         assert card["weights"] == [f.name for f in files] and all(f.stat().st_size < 5e6 for f in files)
         assert card["weights_bytes"] == sum(f.stat().st_size for f in files) and card["steps"] > 0
+        assert card["files"] == {f.name: {"bytes": f.stat().st_size, "sha256": hashlib.sha256(f.read_bytes()).hexdigest()}
+                                 for f in files}
         for key in ("training_command", "machine", "training_seconds", "metrics", "config"):
             assert card[key], f"{kind}.json: field {key!r} is empty"
     assert ref.setting("start") == "templates" and ref.setting("n_candidates") == 5
@@ -93,12 +96,26 @@ def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_
     assert (card["kind"], card["dataset"], card["obj_ids"], card["steps"]) == ("refiner", "toy", [1, 2], 42)
     assert card["training_seconds"] == 61.2 and card["training_command"] == "python train.py"
     assert card["weights"] == ["refiner.safetensors"] and card["weights_bytes"] == weights.stat().st_size
+    assert card["files"] == {"refiner.safetensors": {"bytes": weights.stat().st_size,
+                                                     "sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}}
+    assert reference_models("toy", tmp_path).path("refiner") == weights  # the card agrees with its file
     back = load_weights(weights)
     assert back.step == 42 and torch.equal(back.model["w"], ckpt.model["w"].half().float())
     before = weights.read_bytes()
     publish(tmp_path / "checkpoint.pt", tmp_path / "toy", {"note": "a card update"})
     assert weights.read_bytes() == before  # same weights: the file is left as it is (no churn in git)
     assert json.loads(card_path.read_text())["note"] == "a card update"
+
+
+def test_each_weights_file_is_hashed_once_per_process(tmp_path):
+    from cosy_lite.model_files import reference_models as catalog
+
+    catalog._sha256.cache_clear()
+    reference_models(NAME)
+    hashed = catalog._sha256.cache_info()
+    assert hashed.misses == 4 and hashed.currsize == 4  # the detector's 3 shards and the refiner
+    reference_models(NAME)
+    assert catalog._sha256.cache_info().misses == hashed.misses  # from the cache: unchanged files
 
 
 def test_command_lines_take_the_sets_networks_and_settings_unless_given():

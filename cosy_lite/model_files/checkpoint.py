@@ -155,6 +155,18 @@ def _refusal(e: Exception) -> str:
     return found.group(1).strip() if found else " ".join(str(e).split())[:200]
 
 
+def is_id_list(value: Any) -> bool:
+    """Whether ``value`` is a non-empty list (or tuple) of positive integers: object ids."""
+    return (isinstance(value, (list, tuple)) and len(value) > 0
+            and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value))
+
+
+def describe_value(value: Any) -> str:
+    """``TYPE VALUE`` (shortened) for an "expected X, got ..." message."""
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
 def _check_fields(path: Path, payload: dict[str, Any]) -> None:
     """CheckpointError naming the field when a field has the wrong type."""
     if not isinstance(payload["kind"], str):

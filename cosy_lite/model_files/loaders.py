@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint
+from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, describe_value, is_id_list, load_checkpoint
 
 if TYPE_CHECKING:
     import torch
@@ -26,6 +26,14 @@ if TYPE_CHECKING:
 
 Size = tuple[int, int]
 DETECTOR_KIND = "detector"
+# the fields of a file's ``meta`` the loaders read: name -> (check, what is expected)
+META_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "obj_ids": (is_id_list, "a list of positive integers"),
+    "net": (lambda v: isinstance(v, dict), "a JSON object (the PoseNetConfig)"),
+    "detector_config": (lambda v: isinstance(v, dict), "a JSON object (the DetectorConfig)"),
+    "label_map": (lambda v: isinstance(v, dict) and is_id_list(v.get("obj_ids")),
+                  "a JSON object {'obj_ids': a list of positive integers}"),
+}
 
 
 @dataclass
@@ -52,12 +60,18 @@ class PoseModel:
         return str(self.path) if self.path is not None else f"{self.kind} model (built in code)"
 
 
-def _meta_field(ckpt: Checkpoint, path: Path, name: str) -> Any:
-    if name in ckpt.meta:
-        return ckpt.meta[name]
-    if name in ckpt.config:  # older files: the training config holds it
-        return ckpt.config[name]
-    raise CheckpointError(path, f"field 'meta.{name}' missing (needed to rebuild the {ckpt.kind} model)")
+def _meta_field(ckpt: Checkpoint, path: Path, name: str, from_config: bool = True) -> Any:
+    """``ckpt.meta[name]`` checked as :data:`META_FIELDS` says; ``from_config``: for older pose
+    files, ``ckpt.config[name]`` when the meta lacks it."""
+    source, where = ckpt.meta, "meta"
+    if name not in ckpt.meta and from_config and name in ckpt.config:  # older files: the training config holds it
+        source, where = ckpt.config, "config"
+    if name not in source:
+        raise CheckpointError(path, f"field 'meta.{name}' missing (needed to rebuild the {ckpt.kind} model)")
+    check, expected = META_FIELDS[name]
+    if not check(source[name]):
+        raise CheckpointError(path, f"field '{where}.{name}': expected {expected}, got {describe_value(source[name])}")
+    return source[name]
 
 
 def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "cpu") -> PoseModel:
@@ -77,8 +91,6 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
         raise CheckpointError(path, f"weights do not fit the network of meta.net {net_cfg} "
                                     f"({type(e).__name__}: {e})") from None
     h, w = (int(v) for v in cfg.crop_resolution)
-    if not obj_ids:
-        raise CheckpointError(path, "field 'meta.obj_ids' is empty")
     shading = str(net_cfg.get("render_shading", "flat"))  # files from before shading existed: flat renderings
     return PoseModel(net.to(device).eval(), kind, (h, w), sorted(int(i) for i in obj_ids), path, shading,
                      network_output(net))
@@ -97,6 +109,8 @@ def load_detector(path: str | Path, device: str | torch.device = "cpu") -> Detec
     missing = [k for k in ("detector_config", "label_map") if k not in ckpt.meta]
     if missing:
         raise CheckpointError(path, f"field 'meta' lacks {missing} (needed to rebuild the detector)")
+    for name in ("detector_config", "label_map"):
+        _meta_field(ckpt, Path(path), name, from_config=False)
     try:
         model = Detector.from_meta(ckpt.meta)
     except (TypeError, ValueError) as e:
