@@ -22,8 +22,11 @@ demo: setup
 train: setup
 	$(PY) -m cosy_lite.cli demo --train --data-root $(DATA)
 
+# two pytest workers (pytest-xdist), each test on one torch thread: both cores busy, the same arithmetic
+# on any machine; long tests are rebalanced between the workers (worksteal)
+TEST_WORKERS ?= 2
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 bench: setup
 	$(PY) bench/bench_synth.py

@@ -11,6 +11,32 @@ TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
 sys.path.insert(0, str(TESTS))  # bop_fixtures, toy_task
 
+# Every test computes with this many torch threads, whatever the machine has: float reductions split
+# over threads round differently, so a tolerance measured here holds on a 2- or a 64-core machine.
+# One: `make test` runs two pytest workers (pytest-xdist), one per core.
+TEST_THREADS = 1
+
+
+@pytest.fixture(autouse=True)
+def _same_arithmetic_everywhere():
+    """Each test starts from the same random state (Python, numpy, torch) and the same torch thread
+    count, and leaves them as it found them: no test depends on the ones that ran before it."""
+    import random
+
+    import numpy as np
+
+    torch = sys.modules.get("torch")  # not imported here: some tests check that commands load no torch
+    threads = torch.get_num_threads() if torch is not None else None
+    if torch is not None:
+        torch.set_num_threads(TEST_THREADS)
+        torch.manual_seed(0)
+    random.seed(0)
+    np.random.seed(0)
+    yield
+    if torch is not None and threads is not None:
+        torch.set_num_threads(threads)
+
+
 TINY_SYNTH = ["train.n_images=6", "train.views_per_layout=6", "test.n_images=2", "test.views_per_layout=2"]
 
 
