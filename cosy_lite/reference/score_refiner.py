@@ -4,7 +4,7 @@ each iteration (the refiner numbers of a reference-model card).
 Instances: ``n`` object instances of a split with a GT pose (default the ``test`` split, which
 training never reads; visible fraction >= 0.1), drawn with a fixed seed; start poses: GT + the
 refiner's training noise (15 deg per Euler angle, (1, 1, 5) cm per camera axis, the same draw for
-every refiner). Errors as in training validation (:func:`~cosy_lite.train.pose_task.pose_errors`:
+every refiner), or the GT itself (``--from-gt``: the drift from a perfect start). Errors as in training validation (:func:`~cosy_lite.train.pose_task.pose_errors`:
 symmetry-aware rotation and translation, MSSD and ADD-S recall at 0.1 diameter).
 """
 
@@ -21,9 +21,10 @@ CHUNK = 32  # instances whose full images are held in memory at once
 
 
 def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256, n_iterations: int = 4,
-                  split: str = "test", seed: int = 12345, progress: bool = True) -> dict[str, Any]:
+                  split: str = "test", seed: int = 12345, progress: bool = True, from_gt: bool = False) -> dict[str, Any]:
     """``{"instances", "split", "start": {...}, "iter1": {...}, ...}``: each a dict of
-    ``rot_err_deg_median``, ``trans_err_cm_median``, ``adds_recall_0.1d``, ``mssd_recall_0.1d``."""
+    ``rot_err_deg_median``, ``trans_err_cm_median``, ``adds_recall_0.1d``, ``mssd_recall_0.1d``.
+    ``from_gt``: start AT the GT poses (the same instances): how far the refiner drifts from a perfect start."""
     import torch
     from tqdm import tqdm
 
@@ -58,6 +59,7 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256, n
             idx = objects.index(obj)
             points, syms, mask = objects.points[idx], objects.symmetries[idx], objects.sym_mask[idx]
             start = add_pose_noise(gt, NOISE_ROT_DEG, NOISE_TRANS_M, generator=g).float()
+            start = gt.float() if from_gt else start
             images = torch.stack([b.rgb for b in batch]).float() / 255
             K = torch.stack([b.K for b in batch]).float()
             poses = iterate_poses(model.net, images, K, start, obj, points.float(), renderer, n_iterations,
@@ -67,7 +69,8 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256, n
             diameters.append(objects.diameters[idx])
     diam = torch.cat(diameters)
     out: dict[str, Any] = {"refiner": str(refiner), "split": split, "instances": len(rows), "seed": seed,
-                           "start_noise": {"rot_deg": NOISE_ROT_DEG, "trans_m": list(NOISE_TRANS_M)}}
+                           "start_noise": ({"rot_deg": 0.0, "trans_m": [0.0, 0.0, 0.0]} if from_gt else
+                                           {"rot_deg": NOISE_ROT_DEG, "trans_m": list(NOISE_TRANS_M)})}
     for k in keys:
         e = errors[k]
         joined = PoseErrors(*(torch.cat([getattr(x, f) for x in e]) for f in ("rot_deg", "trans_m", "adds_m", "mssd_m")))
@@ -84,6 +87,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iterations", type=int, default=4)
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--out", type=Path, default=None, metavar="JSON", help="also write the numbers here")
+    p.add_argument("--from-gt", action="store_true", help="start at the GT poses instead of GT + noise (the drift)")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -102,8 +106,8 @@ def run(args: argparse.Namespace) -> int:
     if args.n < 1 or args.iterations < 1:
         raise CosyLiteError(f"-n {args.n} / --iterations {args.iterations}: expected integers >= 1")
     scores = score_refiner(refiner, dataset_folder(args.dataset), args.n, args.iterations, args.split, args.seed,
-                           progress=not args.no_progress)
-    print(f"{scores['instances']} instances of {args.split}, from GT + noise:")
+                           progress=not args.no_progress, from_gt=args.from_gt)
+    print(f"{scores['instances']} instances of {args.split}, from GT{'' if args.from_gt else ' + noise'}:")
     print("| iteration | rot (deg) | trans (cm) | ADD-S recall 0.1 d | MSSD recall 0.1 d |\n| --- | ---: | ---: | ---: | ---: |")
     for k in ["start"] + [f"iter{i + 1}" for i in range(args.iterations)]:
         s = scores[k]
