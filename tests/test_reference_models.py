@@ -168,6 +168,18 @@ def test_the_reference_refiner_lowers_the_pose_errors_of_held_out_instances(tiny
     assert last["adds_recall_0.1d"] > start["adds_recall_0.1d"]
 
 
+def test_score_refiner_from_gt_starts_at_zero_error_and_measures_the_drift(tiny_synth_root):
+    from cosy_lite.reference.score_refiner import score_refiner
+
+    s = score_refiner(reference_models(NAME).path("refiner"), tiny_synth_root, n=20, n_iterations=1, progress=False,
+                      from_gt=True)
+    assert s["instances"] == 7 and s["start_noise"] == {"rot_deg": 0.0, "trans_m": [0.0, 0.0, 0.0]}
+    assert s["start"]["rot_err_deg_median"] < 1e-2 and s["start"]["trans_err_cm_median"] < 1e-3
+    assert s["start"]["mssd_recall_0.1d"] == 1.0
+    # one iteration moves a perfect pose, but by far less than the 15 deg / 1-5 cm it corrects
+    assert 0 < s["iter1"]["rot_err_deg_median"] < 10 and s["iter1"]["trans_err_cm_median"] < 3
+
+
 # ----------------------------------------------------------------------------- deliberate bugs (manual runs)
 
 
