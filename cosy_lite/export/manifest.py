@@ -20,7 +20,6 @@ the file and the field.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from dataclasses import asdict, dataclass, field
@@ -84,12 +83,11 @@ class ModelEntry:
 
 
 def file_digest(path: Path) -> tuple[int, str]:
-    """(size in bytes, sha256 hex) of ``path``."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return path.stat().st_size, h.hexdigest()
+    """(size in bytes, sha256 hex) of ``path`` (the one file hash of the package, shared with the
+    reference-model cards)."""
+    from cosy_lite.model_files.reference_models import file_sha256
+
+    return path.stat().st_size, file_sha256(path)
 
 
 def metadata_of(entry: ModelEntry, config: dict[str, Any]) -> dict[str, str]:
