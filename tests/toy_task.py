@@ -21,7 +21,7 @@ class ToyTask:
         self.W = torch.randn(8, 3, generator=g)
         self.y = self.x @ self.W + 0.5
 
-    def build_model(self) -> torch.nn.Module:
+    def build_model(self, load_pretrained: bool = True) -> torch.nn.Module:
         torch.manual_seed(123)
         return torch.nn.Sequential(torch.nn.Linear(8, 32), torch.nn.ReLU(), torch.nn.Linear(32, 3))
 

@@ -190,9 +190,12 @@ class StrongAugmentation:
             return images.clone()
         is_uint8 = images.dtype == torch.uint8
         x = images.float() / 255.0 if is_uint8 else images.clone()
-        if masks_any is not None:
-            self._replace_backgrounds(x, masks_any, generator)
-        self._photometric(x, generator)
+        # in float32 whatever the caller's autocast (training steps run under bf16 autocast on GPUs:
+        # kornia's ops then return bf16, which cannot be written back into the float32 batch)
+        with torch.autocast(x.device.type, enabled=False):
+            if masks_any is not None:
+                self._replace_backgrounds(x, masks_any, generator)
+            self._photometric(x, generator)
         if is_uint8:
             return (x * 255.0).round_().clamp_(0, 255).to(torch.uint8)
         return x.to(images.dtype)

@@ -205,8 +205,8 @@ class DetectorTask:
         self._train_set = MasksAnyDataset(train)
         self.val_keys: list[ImageKey] = sorted(val.image_keys())
 
-    def build_model(self) -> torch.nn.Module:
-        model = Detector(self.label_map, self.cfg.detector)
+    def build_model(self, load_pretrained: bool = True) -> torch.nn.Module:
+        model = Detector(self.label_map, self.cfg.detector, load_weights=load_pretrained)
         return model.to(memory_format=torch.channels_last) if self.cfg.cpu.channels_last else model
 
     def train_dataset(self) -> MasksAnyDataset:

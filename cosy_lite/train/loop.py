@@ -70,7 +70,10 @@ class TrainTask(Protocol):
 
     kind: str
 
-    def build_model(self) -> torch.nn.Module: ...
+    def build_model(self, load_pretrained: bool = True) -> torch.nn.Module:
+        """The network; ``load_pretrained=False``: the same network without reading pretrained weights
+        (a checkpoint or ``--init`` overwrites them)."""
+        ...
 
     def train_dataset(self) -> Dataset: ...
 
@@ -246,19 +249,23 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
 
     torch.set_flush_denormal(True)  # CPU: denormal floats (tiny Adam moments, activations) are very slow
     torch.manual_seed(loop.seed)  # the initial weights are a function of the seed (same on every rank)
-    model = task.build_model().to(device)
+    # resumed or --init: every weight is overwritten below, so no pretrained (ImageNet) file is read
+    model = task.build_model(load_pretrained=init is None and not ckpt_path.is_file()).to(device)
     optimizer, scheduler = build_optimizer(model.parameters(), optim)
     start_step = 0
     interval: dict[str, Any] = {"sums": {}, "n": 0}  # loss sums of the log interval in progress
     elapsed_before = 0.0  # seconds trained before this process (resumed runs)
     items_before = 0  # training items (crops, images) of the run before this process
     init_record: dict[str, Any] | None = None
+    # what the weights started from, when the task did not read it itself (resume, --init)
+    weights_source: str | None = None
     if ckpt_path.is_file():
         if not resume:
             raise CheckpointError(ckpt_path, "a checkpoint already exists; pass --resume to continue it or choose another output folder")
         ckpt = load_checkpoint(ckpt_path, kind=task.kind)
         _check_same_config(ckpt_path, ckpt.config, config)
         init_record = ckpt.meta.get("init")
+        weights_source = ckpt.meta.get("initialised_from")
         if init is not None and (init_record or {}).get("path") != str(init):
             print(f"{ckpt_path}: resuming; --init {init} is not used (the run started from "
                   f"{(init_record or {}).get('path', 'its fresh initialisation')})")
@@ -283,6 +290,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
         from cosy_lite.train.init_weights import load_initial_weights
 
         init_record = load_initial_weights(model, init, task.kind)
+        weights_source = f"init: {init}"
     if dist_info.is_main:  # records after the checkpoint (all, without one) come again
         _truncate_log(log_path, start_step)
     barrier(dist_info)
@@ -308,7 +316,10 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             return
         items_trained = items_before + total_items
         before = (init_record or {}).get("items_seen") or 0
-        meta = {**task.checkpoint_meta(), "items_seen": items_trained + before, "world_size": dist_info.world_size,
+        task_meta = task.checkpoint_meta()
+        if "initialised_from" in task_meta and task_meta["initialised_from"] is None:
+            task_meta["initialised_from"] = weights_source
+        meta = {**task_meta, "items_seen": items_trained + before, "world_size": dist_info.world_size,
                 **({"init": init_record} if init_record else {})}
         save_checkpoint(ckpt_path, Checkpoint(
             kind=task.kind, model=model.state_dict(), config=config, step=step,

@@ -149,6 +149,7 @@ class PoseTask:
                               "to the image locally); the coarse model needs arch early or siamese")
         self.cfg = cfg
         self.kind = cfg.model
+        self._initialised_from: str | None = None  # set by build_model
         self.dataset = BopDataset(Path(dataset_root), cfg.dataset)
         self.objects = ObjectTable.from_dataset(self.dataset, cfg.data.obj_ids or None, cfg.data.n_points,
                                                 cfg.data.n_continuous_symmetries)
@@ -187,14 +188,17 @@ class PoseTask:
 
         return PoseBatch.collate(items)
 
-    def build_model(self) -> torch.nn.Module:
+    def build_model(self, load_pretrained: bool = True) -> torch.nn.Module:
+        # What the weights started from is recorded when they are read here; otherwise (resume, --init)
+        # the checkpoint's meta carries the record of the run or file they come from.
+        self._initialised_from = initialised_from(self.cfg.net) if load_pretrained else None
         # channels_last: the trunk's convolutions run 1.47x faster forward+backward on the CPU (Lite0,
         # 16 x 144x192, one thread); the inputs follow in compute_losses. The weights saved are the same.
-        return build_pose_net(self.cfg.net, self.cfg.model).to(memory_format=torch.channels_last)
+        return build_pose_net(self.cfg.net, self.cfg.model, load_weights=load_pretrained).to(memory_format=torch.channels_last)
 
     def checkpoint_meta(self) -> dict[str, Any]:
         return {"obj_ids": self.objects.obj_ids, "net": asdict(self.cfg.net), "dataset": self.cfg.dataset,
-                "model": self.cfg.model, "initialised_from": initialised_from(self.cfg.net)}
+                "model": self.cfg.model, "initialised_from": self._initialised_from}
 
     # ------------------------------------------------------------------ one step
     def compute_losses(self, model, batch, step: int, device: torch.device) -> dict[str, Tensor]:

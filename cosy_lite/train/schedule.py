@@ -14,9 +14,11 @@ class OptimConfig:
     """Adam with linear warm-up from ``lr / warmup_steps`` to ``lr``, then x``decay_factor`` at each
     step of ``decay_steps``; gradients clipped to ``clip_grad_norm`` (0 = no clipping).
 
-    ``schedule = "cosine"`` multiplies that by a cosine from 1 to ``cosine_floor`` over the fraction of
-    the run done: its training time over ``loop.max_minutes`` when that is set (so a time-capped run
-    ends at the low rate whatever its speed), else its steps over ``loop.steps``.
+    ``schedule = "cosine"`` replaces the step decay (``decay_steps`` are ignored: a profile's steps
+    left under the cosine held a 60-minute detector run at <= 3e-5 for most of its time) by a cosine
+    from 1 to ``cosine_floor`` over the fraction of the run done: its training time over
+    ``loop.max_minutes`` when that is set (so a time-capped run ends at the low rate whatever its
+    speed), else its steps over ``loop.steps``.
     """
 
     lr: float = 3e-4
@@ -35,6 +37,8 @@ SCHEDULES = ("step", "cosine")
 def lr_factor(step: int, cfg: OptimConfig) -> float:
     """Multiplier of ``cfg.lr`` at optimisation step ``step`` (0-based)."""
     warm = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
+    if cfg.schedule == "cosine":
+        return warm
     n_decays = sum(step >= s for s in cfg.decay_steps)
     return warm * cfg.decay_factor**n_decays
 
