@@ -42,6 +42,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
+
 MODELS = ("detector", "coarse", "refiner")
 METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_mspd"}  # column -> scores.json key
 MSSD_RECALL = "MSSD recall 0.1 d"
@@ -127,10 +129,19 @@ def model_args(cfg: DemoConfig) -> list[str]:
     if cfg.reference is not None:
         return ["--pretrained", cfg.reference, "--templates-cache", str(cfg.runs / "templates")]
     start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
-             else ["--start", "templates", "--candidates", str(cfg.n_candidates),
+             else ["--start", cfg.start, "--candidates", str(cfg.n_candidates),
                    "--templates-cache", str(cfg.runs / "templates")])
     return start + ["--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"),
                     "--n-refiner-iters", str(cfg.n_refiner_iters)]
+
+
+def inference_start(cfg: DemoConfig) -> str:
+    """Where the inference runs start their poses: the reference set's ``pipeline.json``, or ``cfg.start``."""
+    if cfg.reference is None:
+        return cfg.start
+    from cosy_lite.model_files.reference_models import reference_models
+
+    return str(reference_models(cfg.reference).setting("start"))
 
 
 def infer_runs(cfg: DemoConfig) -> list[InferRun]:
@@ -139,7 +150,7 @@ def infer_runs(cfg: DemoConfig) -> list[InferRun]:
         start, masks = "templates + refiner", "GT boxes + masks"
     else:
         start = ("coarse" if cfg.start == "coarse" else f"templates (top {cfg.n_candidates})") + " + refiner"
-        masks = "GT boxes + masks" if cfg.start == "templates" else "GT boxes"
+        masks = "GT boxes + masks" if cfg.start in TEMPLATE_STARTS else "GT boxes"
     # each ICP run also writes its poses before ICP: the RGB-only results at no extra cost
     return [
         InferRun("cosyliteicp", f"detector + {start} + depth ICP",
@@ -370,15 +381,16 @@ def prepare_templates(cfg: DemoConfig, root: Path) -> None:
     runs' cache by ``cosy-lite templates``, half of the objects on each core, before the inference runs
     (side by side, each would render every object itself). Objects already cached are skipped."""
     targets = root / "test_targets_bop19.json"
-    if "--templates-cache" not in model_args(cfg) or cfg.start != "templates" or not targets.is_file():
+    start = inference_start(cfg)
+    if "--templates-cache" not in model_args(cfg) or start not in TEMPLATE_STARTS or not targets.is_file():
         return  # (no targets: the inference runs say so themselves)
     from cosy_lite.bop import io
 
     ids = sorted({t.obj_id for t in io.load_test_targets(targets)})
     halves = [ids[0::2], ids[1::2]]
     cache = cfg.runs / "templates"
-    cmds = [_cli("templates", "--dataset", str(root), "--cache", str(cache), "--objects", ",".join(map(str, h)))
-            for h in halves if h]
+    cmds = [_cli("templates", "--dataset", str(root), "--cache", str(cache), "--objects", ",".join(map(str, h)),
+                 "--start", start) for h in halves if h]
     _run_parallel(cmds, [f"silhouette templates of objects {h}" for h in halves if h],
                   [cfg.out / "logs" / f"templates_{k}.log" for k in range(len(cmds))])
 
@@ -483,7 +495,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="reference models to infer with (default: the dataset's, when shipped)")
     p.add_argument("--minutes", type=float, nargs=3, metavar=("DET", "COARSE", "REF"), default=None,
                    help="training budget per model (--train: default 16 9.5 9.5; else the short runs: 1 1 1)")
-    p.add_argument("--start", choices=["templates", "coarse"], default=DemoConfig.start,
+    p.add_argument("--start", choices=STARTS, default=DemoConfig.start,
                    help="--train: start poses from silhouette templates (default; the coarse network is not trained) "
                         "or the trained coarse network (CosyPose)")
     p.add_argument("--candidates", type=int, default=DemoConfig.n_candidates, metavar="K",

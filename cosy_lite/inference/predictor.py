@@ -7,7 +7,9 @@ all crops of an iteration rendered in one call). Starting pose (``start``):
 * ``"coarse"`` (CosyPose): canonical rotation and depth from the detection box
   (:func:`~cosy_lite.models.initial_pose.initial_pose_from_boxes`) -> 1 coarse iteration;
 * ``"templates"``: the detection mask matched against rendered silhouettes
-  (:class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates`, no network); with
+  (:class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates`, no network);
+  ``"appearance"``: the same templates ranked by the image inside the mask against textured
+  renderings as well (:class:`~cosy_lite.models.appearance_templates.AppearanceTemplates`); with
   ``n_candidates`` > 1 the best templates each get one refiner iteration and the one the flow
   refiner is most confident about (:func:`~cosy_lite.models.render_and_compare.refine_and_score`)
   goes on (that iteration counts as the first of ``n_refiner_iterations``);
@@ -42,17 +44,18 @@ from cosy_lite.inference.network_runtime import PRECISIONS, Clock, TimedRenderer
 from cosy_lite.inference.object_models import (SetupError, object_models, objects_and_renderer, render_shading,
                                                start_templates)
 from cosy_lite.inference.pose_estimates import TIMING_KEYS, PoseEstimates
+from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from cosy_lite.model_files.loaders import PoseModel, load_detector, load_pose_model
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
 # has rendered crashes the process.
 from cosy_lite.models.detector import detect
 from cosy_lite.models.initial_pose import initial_pose_from_boxes
 from cosy_lite.models.render_and_compare import iterate_poses, refine_and_score
+from cosy_lite.models.appearance_templates import AppearanceTemplates
 from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 
 __all__ = ["Predictor", "PoseEstimates", "SetupError", "STARTS", "TIMING_KEYS"]
 
-STARTS = ("coarse", "templates")  # where the pose iterations start (see the module doc)
 
 
 def _as_rgb(rgb: Any) -> np.ndarray:
@@ -108,7 +111,7 @@ class Predictor:
             raise SetupError("start='coarse' needs a coarse model (or use start='templates')")
         if n_candidates < 1:
             raise ValueError(f"n_candidates must be >= 1, got {n_candidates}")
-        if n_candidates > 1 and (start != "templates" or refiner is None or refiner.output != "flow"
+        if n_candidates > 1 and (start not in TEMPLATE_STARTS or refiner is None or refiner.output != "flow"
                                  or n_refiner_iterations < 1):
             raise SetupError(f"n_candidates = {n_candidates} needs start='templates' and a flow refiner "
                              f"(net.arch=flow) with at least one iteration: its confidence ranks the candidates")
@@ -128,9 +131,11 @@ class Predictor:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.channels_last, self.precision = bool(channels_last), precision
         self.start, self.n_candidates = start, int(n_candidates)
-        if start == "templates" and templates is None:
+        if start in TEMPLATE_STARTS and templates is None:
             templates = SilhouetteTemplates(renderer, self.objects.obj_ids,
                                             self.objects.diameters.detach().cpu().double().tolist())
+        if start == "appearance" and templates.appearance is None:
+            AppearanceTemplates(templates, renderer)  # attaches itself: templates.match ranks by appearance
         self.templates = templates
         if isinstance(detector, nn.Module):  # else an onnxruntime detector (OnnxDetector)
             detector.to(self.device).eval()
@@ -169,7 +174,7 @@ class Predictor:
         Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
         a checkpoint does not cover the objects.
         """
-        if coarse is None and (start != "templates" or refiner is None):
+        if coarse is None and (start not in TEMPLATE_STARTS or refiner is None):
             raise SetupError("a coarse checkpoint is needed (coarse=...), or start='templates' with a refiner")
         models = object_models(models_dir, dataset)
         coarse_model = None if coarse is None else load_pose_model(coarse, "coarse", device)
@@ -285,16 +290,18 @@ class Predictor:
     @property
     def needs_masks(self) -> bool:
         """True when :meth:`predict` needs detection masks (``start="templates"``)."""
-        return self.start == "templates"
+        return self.start in TEMPLATE_STARTS
 
-    def _template_candidates(self, det: Detections, K: np.ndarray) -> np.ndarray:
-        """``[N,k,4,4]`` float64: the ``n_candidates`` best template poses of each detection."""
+    def _template_candidates(self, det: Detections, K: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+        """``[N,k,4,4]`` float64: the ``n_candidates`` best template poses of each detection (ranked by
+        appearance too with ``start="appearance"``: the image ``rgb`` inside each mask)."""
         assert self.templates is not None and det.masks is not None
         masks = det.masks.cpu().numpy().astype(bool)
         empty = ~masks.any(axis=(1, 2))
         if empty.any():  # a detection whose mask has no pixel (the detector's threshold): its box stands in
             masks[empty] = box_masks(det.boxes[torch.from_numpy(empty)], masks.shape[1:])
-        return self.templates.match(masks, det.obj_ids.tolist(), K, self.n_candidates).TCO
+        return self.templates.match(masks, det.obj_ids.tolist(), K, self.n_candidates,
+                                    rgb=rgb if self.start == "appearance" else None).TCO
 
     # ------------------------------------------------------------------ stages
     def _image_tensor(self, rgb: np.ndarray) -> Tensor:
@@ -405,7 +412,7 @@ class Predictor:
             TCO_coarse = TCO_init
         else:
             with clock("crops"):
-                candidates = torch.from_numpy(self._template_candidates(det, K.numpy())).to(self.device)
+                candidates = torch.from_numpy(self._template_candidates(det, K.numpy(), rgb)).to(self.device)
             if candidates.shape[1] == 1:
                 TCO_init = TCO_coarse = candidates[:, 0].float()
             else:

@@ -101,6 +101,17 @@ class ObjectTemplates:
 
 
 @dataclass
+class MaskView:
+    """A detection mask seen by a camera turned by ``R`` [3,3] to look at it: the ``mask`` [H,W] bool
+    it sees, its ``box`` [4] and its occupancy ``grid`` [S,S] uint8 (:func:`occupancy_grids`)."""
+
+    R: np.ndarray
+    mask: np.ndarray
+    box: np.ndarray
+    grid: np.ndarray
+
+
+@dataclass
 class TemplateMatches:
     """The ``k`` best templates of each of B detections: TCO [B,k,4,4] float64 (m), scores [B,k]
     (soft IoU in [0, 1], decreasing), found [B] bool (False: empty mask, TCO is NaN)."""
@@ -145,6 +156,7 @@ class SilhouetteTemplates:
         self.cache_dir = None if cache_dir is None or rotations is not None else Path(cache_dir)
         self.model_keys = {int(k): str(v) for k, v in (model_keys or {}).items()}
         self._cache: dict[int, ObjectTemplates] = {}
+        self.appearance: Any = None  # an AppearanceTemplates ranking by appearance too (see match)
 
     @property
     def template_K(self) -> np.ndarray:
@@ -188,9 +200,13 @@ class SilhouetteTemplates:
             boxes.append(b)
         return ObjectTemplates(self.rotations, np.concatenate(grids), np.concatenate(boxes), depth)
 
-    def match(self, masks: np.ndarray, obj_ids: Sequence[int], K: np.ndarray, top_k: int = 1) -> TemplateMatches:
+    def match(self, masks: np.ndarray, obj_ids: Sequence[int], K: np.ndarray, top_k: int = 1,
+              rgb: np.ndarray | None = None) -> TemplateMatches:
         """The ``top_k`` template poses of each detection: ``masks [B,H,W]`` bool (visible masks),
-        ``obj_ids [B]``, ``K [B,3,3]`` or ``[3,3]`` intrinsics of the image (px)."""
+        ``obj_ids [B]``, ``K [B,3,3]`` or ``[3,3]`` intrinsics of the image (px). With an
+        ``appearance`` scorer (:class:`~cosy_lite.models.appearance_templates.AppearanceTemplates`)
+        and the image ``rgb [H,W,3]`` uint8, templates are ranked by appearance + silhouette
+        (its ``score``), else by silhouette soft IoU alone."""
         masks = np.asarray(masks, dtype=bool)
         B = len(masks)
         K = np.broadcast_to(np.asarray(K, dtype=np.float64), (B, 3, 3))
@@ -200,22 +216,41 @@ class SilhouetteTemplates:
         boxes = mask_boxes(masks)
         found = np.isfinite(boxes).all(axis=1)
         for i in np.flatnonzero(found):
-            R_view, virtual = self._look_at_mask(masks[i], boxes[i], K[i])
-            box = mask_boxes(virtual[None])[0]
-            if not np.isfinite(box).all():
+            view = self.observe(masks[i], boxes[i], K[i])
+            if view is None:
                 found[i] = False
                 continue
-            observed = occupancy_grids(virtual[None], box[None], self.grid)[0]
             t = self.templates(int(obj_ids[i]))
-            inter = np.minimum(t.grids, observed).sum(axis=(1, 2), dtype=np.int64)
-            union = t.areas + int(observed.sum(dtype=np.int64)) - inter  # min + max = a + b
-            iou = inter / np.maximum(union, 1)
-            best = np.argsort(-iou, kind="stable")[:k]
-            scores[i] = iou[best]
-            T_view = np.eye(4)
-            T_view[:3, :3] = R_view
-            TCO[i] = T_view @ self._poses(t, best, box, K[i])
+            score = self.silhouette_iou(t, view.grid)
+            if self.appearance is not None and rgb is not None:
+                score = self.appearance.score(int(obj_ids[i]), rgb, view, K[i], score)
+            best = np.argsort(-score, kind="stable")[:k]
+            scores[i] = score[best]
+            TCO[i] = self.poses(t, best, view, K[i])
         return TemplateMatches(TCO, scores, found)
+
+    def observe(self, mask: np.ndarray, box: np.ndarray, K: np.ndarray) -> "MaskView | None":
+        """The detection ``mask`` (its ``box``, :func:`mask_boxes`) as the templates see objects: by
+        a camera turned to look at it (:meth:`_look_at_mask`), over its box's square; None when the
+        turned camera sees none of it."""
+        R_view, virtual = self._look_at_mask(mask, box, K)
+        vbox = mask_boxes(virtual[None])[0]
+        if not np.isfinite(vbox).all():
+            return None
+        return MaskView(R_view, virtual, vbox, occupancy_grids(virtual[None], vbox[None], self.grid)[0])
+
+    @staticmethod
+    def silhouette_iou(t: ObjectTemplates, observed: np.ndarray) -> np.ndarray:
+        """``[N]`` soft IoU of each template's occupancy grid with the ``observed`` one."""
+        inter = np.minimum(t.grids, observed).sum(axis=(1, 2), dtype=np.int64)
+        union = t.areas + int(observed.sum(dtype=np.int64)) - inter  # min + max = a + b
+        return inter / np.maximum(union, 1)
+
+    def poses(self, t: ObjectTemplates, which: np.ndarray, view: "MaskView", K: np.ndarray) -> np.ndarray:
+        """``[len(which),4,4]`` camera-frame poses of templates ``which`` placed on the ``view``."""
+        T_view = np.eye(4)
+        T_view[:3, :3] = view.R
+        return T_view @ self._poses(t, which, view.box, K)
 
     @staticmethod
     def _look_at_mask(mask: np.ndarray, box: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,146 @@
+"""``cosy-lite score-start``: how often the start stage points the right way (issue 28's first number).
+
+Instances: those of a split (default ``test``, never trained on) with a GT pose and a visible
+fraction >= ``min_visib`` (0.5), their GT visible masks standing in for detections. Each goes through
+the start stage of ``cosy-lite infer`` (:meth:`SilhouetteTemplates.match`, ranked by silhouettes, or
+by appearance too with ``--start appearance``; with ``--candidates K`` > 1 the K best each get one
+iteration of ``--refiner`` and the most confident is kept, as the predictor does). Reported: the
+share whose chosen start is within 30 deg of GT (symmetry-aware: the closest pose of the object's
+symmetry set), the share of the textured objects' starts that are flipped (> 150 deg), the median
+error, the share for which one of the K candidates is within 30 deg, and seconds per instance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+WITHIN_DEG = 30.0
+FLIPPED_DEG = 150.0
+
+
+def rotation_errors_deg(R: np.ndarray, R_gt: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
+    """``[N]`` angles (deg) between each ``R [N,3,3]`` and the closest of ``R_gt @ S`` over the
+    object's symmetry rotations ``symmetries [S,3,3]`` (identity included)."""
+    equivalent = R_gt[None] @ symmetries  # [S,3,3]
+    trace = np.einsum("nij,sij->ns", R, equivalent)
+    return np.degrees(np.arccos(np.clip((trace - 1) / 2, -1.0, 1.0))).min(axis=1)
+
+
+def textured_obj_ids(renderer: Any, obj_ids: list[int]) -> list[int]:
+    """The objects whose mesh carries a texture image (their print can tell a flipped pose)."""
+    return [o for o in obj_ids if getattr(renderer.mesh(o).visual, "kind", None) == "texture"]
+
+
+def score_start(dataset_root: str | Path, start: str = "appearance", n_candidates: int = 1,
+                refiner: str | Path | None = None, split: str = "test", min_visib: float = 0.5, n: int | None = None,
+                templates_cache: str | Path | None = None, seed: int = 0, progress: bool = True) -> dict[str, Any]:
+    """The numbers of the module doc as a dict (``within_30deg``, ``flipped_textured``,
+    ``median_deg``, ``any_candidate_within_30deg``, ``seconds_per_instance``, ``instances``, ...)."""
+    import torch
+    from tqdm import tqdm
+
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.data.pose_dataset import PoseDataset
+    from cosy_lite.errors import CosyLiteError
+    from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer, start_templates
+    from cosy_lite.model_files.loaders import load_pose_model
+    from cosy_lite.models.render_and_compare import refine_and_score
+
+    if n_candidates > 1 and refiner is None:
+        raise CosyLiteError("--candidates > 1 chooses among the candidates with a refiner's confidence: give --refiner")
+    ds = BopDataset(Path(dataset_root))
+    items = PoseDataset(ds, split, min_visib_fract=min_visib)
+    if len(items) == 0:
+        raise CosyLiteError(f"{dataset_root}: no instance with a visible fraction >= {min_visib} in split {split!r}")
+    order = np.random.default_rng(seed).permutation(len(items))[:n] if n else np.arange(len(items))
+    model = None if refiner is None else load_pose_model(refiner, "refiner")
+    models = ObjectModels(ds.models_dir)
+    obj_ids = sorted(ds.models_info)
+    objects, renderer, _ = objects_and_renderer(models, obj_ids, None, icp=False,
+                                                shading=model.render_shading if model else "headlight")
+    templates = start_templates(start, models, objects, renderer, templates_cache)
+    assert templates is not None
+    textured = set(textured_obj_ids(renderer, obj_ids))
+    chosen, best, flipped_textured = [], [], []
+    seconds = 0.0
+    with torch.no_grad():
+        for r in tqdm(order.tolist(), desc=f"score start ({start})", unit="instance", disable=not progress):
+            it = items[r]
+            o = objects.index([it.obj_id])[0]
+            symmetries = objects.symmetries[o][objects.sym_mask[o]][:, :3, :3].double().numpy()
+            templates.templates(it.obj_id)  # rendered (or read) outside the timing
+            if templates.appearance is not None:
+                templates.appearance.descriptors(it.obj_id)
+            t0 = time.perf_counter()
+            K = it.K.double().numpy()
+            rgb = it.rgb.permute(1, 2, 0).numpy()
+            m = templates.match(it.mask.numpy()[None], [it.obj_id], K, n_candidates,
+                                rgb=rgb if start == "appearance" else None)
+            if not m.found[0]:
+                continue
+            candidates = torch.from_numpy(m.TCO[0]).float()
+            pick = 0
+            if n_candidates > 1:
+                k = len(candidates)
+                _, confidence = refine_and_score(model.net, it.rgb.float()[None].expand(k, -1, -1, -1) / 255,
+                                                 it.K[None].expand(k, 3, 3), candidates, [it.obj_id] * k,
+                                                 objects.points[[o] * k], renderer, model.crop_resolution)
+                pick = int(confidence.argmax())
+            seconds += time.perf_counter() - t0
+            err = rotation_errors_deg(candidates[:, :3, :3].double().numpy(), it.TCO[:3, :3].double().numpy(), symmetries)
+            chosen.append(float(err[pick]))
+            best.append(float(err.min()))
+            if it.obj_id in textured:
+                flipped_textured.append(float(err[pick]) > FLIPPED_DEG)
+    renderer.close()
+    if not chosen:
+        raise CosyLiteError(f"{dataset_root}: no instance could be matched (every mask empty)")
+    errors = np.array(chosen)
+    return {"split": split, "start": start, "candidates": n_candidates, "refiner": None if refiner is None else str(refiner),
+            "min_visib": min_visib, "instances": len(chosen), "textured_instances": len(flipped_textured),
+            "within_30deg": float(np.mean(errors < WITHIN_DEG)),
+            "flipped_textured": float(np.mean(flipped_textured)) if flipped_textured else None,
+            "median_deg": float(np.median(errors)),
+            "any_candidate_within_30deg": float(np.mean(np.array(best) < WITHIN_DEG)),
+            "seconds_per_instance": seconds / len(chosen)}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from cosy_lite.inference.starts import TEMPLATE_STARTS
+
+    p.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under $COSY_LITE_DATA or ./data) or path")
+    p.add_argument("--split", default="test")
+    p.add_argument("--start", choices=TEMPLATE_STARTS, default="appearance")
+    p.add_argument("--candidates", type=int, default=1, help="> 1: the most confident of the K best (needs --refiner)")
+    p.add_argument("--refiner", default=None, metavar="FILE_OR_NAME",
+                   help="refiner checkpoint / .safetensors or reference set name (for --candidates > 1)")
+    p.add_argument("--min-visib", type=float, default=0.5, help="instances at least this visible")
+    p.add_argument("-n", type=int, default=None, help="at most this many instances (drawn with --seed)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR")
+    p.add_argument("--out", type=Path, default=None, metavar="JSON", help="also write the numbers here")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    from cosy_lite.model_files.reference_models import reference_models, reference_names
+    from cosy_lite.render.gl import use_egl
+    from cosy_lite.synth.command import dataset_folder
+
+    use_egl()
+    refiner = args.refiner
+    if refiner is not None and refiner in reference_names():
+        refiner = reference_models(refiner).path("refiner")
+    out = score_start(dataset_folder(args.dataset, None), args.start, args.candidates, refiner, args.split,
+                      args.min_visib, args.n, args.templates_cache, args.seed, progress=not args.no_progress)
+    print(json.dumps(out, indent=1))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=1) + "\n")
+    return 0
