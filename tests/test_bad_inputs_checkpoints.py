@@ -232,22 +232,28 @@ def _flip_last_byte(path: Path) -> None:
     path.write_bytes(bytes(data))
 
 
+# the shipped set's detector shards and refiner file, as its cards list them (they change when a set is published)
+_SHIPPED = Path(__file__).resolve().parents[1] / "models" / "ycbvsynth"
+_DET = json.loads((_SHIPPED / "detector.json").read_text())
+_SHARDS = _DET["weights"]
+_N = len(_SHARDS)
+_REF_BYTES = json.loads((_SHIPPED / "refiner.json").read_text())["files"]["refiner.safetensors"]["bytes"]
+
 # (change to a copy of the shipped set, the file the message names, its field, words of the problem)
 CARD_PROBLEMS = {
     "weights-file-missing": (lambda f: (f / "refiner.safetensors").unlink(), "refiner.json", "weights",
                              "names refiner.safetensors, which is not in"),
-    "shard-missing": (lambda f: (f / "detector-00002-of-00003.safetensors").unlink(), "detector.json", "weights",
-                      "names detector-00002-of-00003.safetensors, which is not in"),
+    "shard-missing": (lambda f: (f / _SHARDS[1]).unlink(), "detector.json", "weights",
+                      f"names {_SHARDS[1]}, which is not in"),
     "card-names-other-shards": (_edit_card("detector", lambda c: c.update(
-        weights=[f"detector-0000{i}-of-00004.safetensors" for i in range(1, 5)])), "detector.json", "weights",
-        "names detector-00001-of-00004.safetensors, which is not in"),
-    "extra-shard": (lambda f: shutil.copyfile(f / "detector-00003-of-00003.safetensors",
-                                              f / "detector-00004-of-00004.safetensors"), "detector.json", "weights",
-                    "detector-00004-of-00004.safetensors is in"),
+        weights=[f"detector-{i:05d}-of-{_N + 1:05d}.safetensors" for i in range(1, _N + 2)])), "detector.json", "weights",
+        f"names detector-00001-of-{_N + 1:05d}.safetensors, which is not in"),
+    "extra-shard": (lambda f: shutil.copyfile(f / _SHARDS[-1], f / f"detector-{_N + 1:05d}-of-{_N + 1:05d}.safetensors"),
+                    "detector.json", "weights", f"detector-{_N + 1:05d}-of-{_N + 1:05d}.safetensors is in"),
     "size-differs": (lambda f: (f / "refiner.safetensors").open("ab").write(b"\0"), "refiner.json",
-                     "files[refiner.safetensors].bytes", "is 1963787 bytes, the card says 1963786"),
-    "sha256-differs": (lambda f: _flip_last_byte(f / "detector-00003-of-00003.safetensors"), "detector.json",
-                       "files[detector-00003-of-00003.safetensors].sha256", "the card says 91fe372a"),
+                     "files[refiner.safetensors].bytes", f"is {_REF_BYTES + 1} bytes, the card says {_REF_BYTES}"),
+    "sha256-differs": (lambda f: _flip_last_byte(f / _SHARDS[-1]), "detector.json",
+                       f"files[{_SHARDS[-1]}].sha256", f"the card says {_DET['files'][_SHARDS[-1]]['sha256'][:8]}"),
     "obj-ids-a-string": (_edit_card("refiner", lambda c: c.update(obj_ids="1,2,3")), "refiner.json", "obj_ids",
                          "expected a list of positive integers, got str '1,2,3'"),
     "weights-a-string": (_edit_card("refiner", lambda c: c.update(weights="refiner.safetensors")), "refiner.json",

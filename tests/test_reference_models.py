@@ -53,7 +53,7 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
                                  for f in files}
         for key in ("training_command", "machine", "training_seconds", "metrics", "config"):
             assert card[key], f"{kind}.json: field {key!r} is empty"
-    assert ref.setting("start") == "templates" and ref.setting("n_candidates") == 5
+    assert ref.setting("start") == "appearance" and ref.setting("n_candidates") == 1
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
@@ -113,7 +113,9 @@ def test_each_weights_file_is_hashed_once_per_process(tmp_path):
     catalog._sha256.cache_clear()
     reference_models(NAME)
     hashed = catalog._sha256.cache_info()
-    assert hashed.misses == 4 and hashed.currsize == 4  # the detector's 3 shards and the refiner
+    n_files = sum(len(json.loads((reference_root() / NAME / f"{k}.json").read_text())["weights"])
+                  for k in ("detector", "refiner"))
+    assert n_files == 5 and hashed.misses == hashed.currsize == n_files  # the detector's 4 shards and the refiner
     reference_models(NAME)
     assert catalog._sha256.cache_info().misses == hashed.misses  # from the cache: unchanged files
 
@@ -124,7 +126,7 @@ def test_command_lines_take_the_sets_networks_and_settings_unless_given():
     args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=Path("mine.pt"), start=None, candidates=None)
     fill_arguments(args)
     assert args.detector == reference_models(NAME).path("detector") and args.refiner == Path("mine.pt")
-    assert (args.start, args.candidates, args.coarse) == ("templates", 5, None)  # no coarse net to load
+    assert (args.start, args.candidates, args.coarse) == ("appearance", 1, None)  # no coarse net to load
     args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, start="coarse", candidates=None)
     fill_arguments(args)  # the set's candidate count belongs to its templates start
     assert (args.candidates, args.coarse) == (1, reference_models(NAME).path("coarse"))  # (None: the set has none)
@@ -138,7 +140,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
 
     ref = reference_models(NAME)
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
-    assert (p.start, p.n_candidates, p.n_refiner_iterations) == ("templates", 5, 4)
+    assert (p.start, p.n_candidates, p.n_refiner_iterations) == ("appearance", 1, 4)
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
     assert p.obj_ids == [1, 2, 5, 8]
     assert Predictor.from_pretrained(NAME, dataset=tiny_synth_root, obj_ids=[1, 5]).detector is not None
