@@ -123,3 +123,16 @@ def test_textured_objects_are_the_ones_with_a_print(scene, tiny_synth_root):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert textured_obj_ids(renderer, [1, 2, 5, 8]) == [2, 5, 8]  # cracker box, mustard, gelatin box
+
+
+def test_score_start_measures_the_start_stage(tiny_synth_root):
+    """cosy-lite score-start on the tiny test split: GT masks through the start stage of infer (two
+    appearance candidates, the refiner's confidence choosing); the numbers are shares and agree."""
+    from cosy_lite.model_files.reference_models import reference_models
+    from cosy_lite.reference.score_start import score_start
+
+    out = score_start(tiny_synth_root, "appearance", n_candidates=2, refiner=reference_models("ycbvsynth").path("refiner"),
+                      min_visib=0.3, n=3, progress=False)
+    assert out["instances"] == 3 and out["candidates"] == 2
+    assert 0 <= out["within_30deg"] <= out["any_candidate_within_30deg"] <= 1 and out["median_deg"] >= 0
+    assert out["textured_instances"] <= 3 and out["seconds_per_instance"] > 0

@@ -72,7 +72,7 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
     with torch.no_grad():
         for r in tqdm(order.tolist(), desc=f"score start ({start})", unit="instance", disable=not progress):
             it = items[r]
-            o = objects.index([it.obj_id])[0]
+            o = int(objects.index([it.obj_id])[0])
             symmetries = objects.symmetries[o][objects.sym_mask[o]][:, :3, :3].double().numpy()
             templates.templates(it.obj_id)  # rendered (or read) outside the timing
             if templates.appearance is not None:
