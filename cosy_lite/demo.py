@@ -381,9 +381,11 @@ def prepare_templates(cfg: DemoConfig, root: Path) -> None:
     runs' cache by ``cosy-lite templates``, half of the objects on each core, before the inference runs
     (side by side, each would render every object itself). Objects already cached are skipped."""
     targets = root / "test_targets_bop19.json"
-    start = inference_start(cfg)
-    if "--templates-cache" not in model_args(cfg) or start not in TEMPLATE_STARTS or not targets.is_file():
+    if "--templates-cache" not in model_args(cfg) or not targets.is_file():
         return  # (no targets: the inference runs say so themselves)
+    start = inference_start(cfg)
+    if start not in TEMPLATE_STARTS:
+        return
     from cosy_lite.bop import io
 
     ids = sorted({t.obj_id for t in io.load_test_targets(targets)})
