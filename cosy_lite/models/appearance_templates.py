@@ -12,7 +12,7 @@ square around the mask's box, background black. Each template then scores
     + ``iou_weight`` x silhouette soft IoU
 
 and the best scores start the refiner. No training: the trunk is the ImageNet one, and the
-descriptors of an object's 2,048 templates are computed once (~12 s per object on one core) and
+descriptors of an object's 2,048 templates are computed once (~20 s per object on one core: rendering ~10 s, trunk ~9 s) and
 cached as ``.npz`` beside the silhouettes (keyed by the mesh hash and the settings).
 
 Measured on 96 test instances of ycbvsynth (visible fraction >= 0.5, GT masks; bench/RESULTS.md,
