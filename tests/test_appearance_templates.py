@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from cosy_lite.bop.dataset import BopDataset
-from cosy_lite.models.appearance_templates import AppearanceTemplates, square_crops
+from cosy_lite.geometry.symmetries import rotation_errors_deg
+from cosy_lite.models.appearance_templates import AppearanceTemplates, square_crops, textured_obj_ids
 from cosy_lite.models.silhouette_templates import SilhouetteTemplates
-from cosy_lite.reference.score_start import rotation_errors_deg, textured_obj_ids
 from cosy_lite.render.renderer import PyrenderRenderer
 
 K = np.array([[572.4, 0.0, 320.0], [0.0, 573.6, 240.0], [0.0, 0.0, 1.0]])
@@ -136,3 +136,66 @@ def test_score_start_measures_the_start_stage(tiny_synth_root):
     assert out["instances"] == 3 and out["candidates"] == 2
     assert 0 <= out["within_30deg"] <= out["any_candidate_within_30deg"] <= 1 and out["median_deg"] >= 0
     assert out["textured_instances"] <= 3 and out["seconds_per_instance"] > 0
+
+
+def _scorer_file(path, obj_ids=(1, 2, 5, 8), shading="headlight", scale=1.0):
+    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
+    from cosy_lite.models.appearance_scorer import AppearanceScorer
+
+    net = AppearanceScorer(load_pretrained=True)
+    with torch.no_grad():
+        net.iou_weight.fill_(0.25)
+        net.query.trunk.conv_stem.weight.mul_(scale)
+    meta = {"obj_ids": list(obj_ids), "trunk": "efficientnet_lite0", "templates": {"shading": shading}}
+    save_checkpoint(path, Checkpoint("scorer", net.state_dict(), {}, 1, meta=meta))
+    return path
+
+
+def test_a_trained_scorer_describes_the_detection_and_brings_its_iou_weight(scene, tmp_path):
+    from cosy_lite.model_files.loaders import load_scorer
+
+    renderer, upright, flipped, diameter = scene
+    rgb, mask, _ = _image(renderer, upright)
+    frozen_sil, frozen = _matcher(renderer, [upright, flipped], diameter)
+    # the ImageNet weights unchanged: the same descriptor as the frozen one, the scorer's IoU weight
+    same = load_scorer(_scorer_file(tmp_path / "same.pt")).net
+    sil, app = _matcher(renderer, [upright, flipped], diameter, scorer=same)
+    view = sil.observe(mask, _box(mask), K)
+    assert app.iou_weight == 0.25 and not app.scorer.training
+    assert torch.allclose(app.describe(rgb, view, K), frozen.describe(rgb, view, K), atol=1e-5)
+    iou = np.array([1.0, 0.0])
+    assert np.allclose(app.score(CRACKER_BOX, rgb, view, K, iou) - frozen.score(CRACKER_BOX, rgb, view, K, iou),
+                       [-0.25, 0.0], atol=1e-4)
+    # other weights: another descriptor of the detection; the templates' descriptors stay the frozen ones
+    other = load_scorer(_scorer_file(tmp_path / "other.pt", scale=0.5)).net
+    _, changed = _matcher(renderer, [upright, flipped], diameter, scorer=other)
+    assert not torch.allclose(changed.describe(rgb, view, K), frozen.describe(rgb, view, K), atol=1e-3)
+    assert torch.equal(changed.descriptors(CRACKER_BOX), frozen.descriptors(CRACKER_BOX))
+
+
+@pytest.mark.parametrize("problem", ["start", "objects", "shading"])
+def test_a_scorer_that_does_not_fit_the_pipeline_is_refused_by_name(tiny_synth_root, tmp_path, problem):
+    from cosy_lite.inference.predictor import Predictor, SetupError
+
+    path = _scorer_file(tmp_path / "s.pt", obj_ids=(1,) if problem == "objects" else (1, 2, 5, 8),
+                        shading="flat" if problem == "shading" else "headlight")
+    refiner = tmp_path / "refiner.pt"
+    _refiner_file(tiny_synth_root, refiner)
+    start = "templates" if problem == "start" else "appearance"
+    with pytest.raises(SetupError, match={"start": "start='appearance'", "objects": r"obj_ids \[2, 5, 8\]",
+                                          "shading": "'flat' shading"}[problem]) as e:
+        Predictor.from_checkpoints(refiner=refiner, dataset=tiny_synth_root, start=start, scorer=path)
+    assert str(path) in str(e.value)
+
+
+def _refiner_file(root, path):
+    from cosy_lite.config import load_config
+    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
+    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
+
+    cfg = load_config(PoseTrainConfig, None, ["net.arch=flow", "net.backbone=efficientnet_lite0", "net.render_shading=headlight",
+                                              "net.crop_resolution=[64,96]",
+                                              "data.val_images=1", "dataset=tiny", "data.n_points=300"])
+    task = PoseTask(cfg, root)
+    save_checkpoint(path, Checkpoint("refiner", task.build_model(load_pretrained=False).state_dict(), {}, 0,
+                                     meta=task.checkpoint_meta()))

@@ -197,6 +197,28 @@ def test_vivo_keeps_the_top_inst_count_detections_per_object(tiny_synth_root, pr
         assert len({e.time for e in est}) == 1 and est[0].time > 0.25  # the file's detection time counts
 
 
+def test_a_score_threshold_comes_before_the_vivo_selection(tiny_synth_root, predictor, tmp_path):
+    from cosy_lite.inference.detection_filter import DetectionFilter
+
+    ds = BopDataset(tiny_synth_root)
+    scores = _detections_json(tmp_path / "dets.json", ds, n_copies=3, time_s=0.25)
+    threshold = sorted(s[0] for s in scores.values())[len(scores) // 2]  # half of the objects' best detections pass
+    predictor.detection_filter = DetectionFilter(min_score=threshold)
+    try:
+        summary = run_on_split(predictor, ds, tmp_path, detections=tmp_path / "dets.json", progress=False)
+        rgb_rec = next(ds.images("test"))
+        det = Detections(torch.tensor([[10, 10, 40, 40], [100, 100, 130, 140]], dtype=torch.float32),
+                         torch.tensor([1, 2]), torch.tensor([threshold - 0.01, threshold + 0.01]))
+        est = predictor.predict(ds.load_rgb(rgb_rec), rgb_rec.camera.K, detections=det)
+    finally:
+        predictor.detection_filter = DetectionFilter()
+    targets = targets_by_image(ds.test_targets())
+    kept = {k for k, s in scores.items() if s[0] >= threshold and k[2] in targets[k[:2]]}
+    rows = [(e.scene_id, e.im_id, e.obj_id) for es in _rows_by_image(summary.csv_path).values() for e in es]
+    assert sorted(rows) == sorted(kept) and 0 < len(kept) < len(scores)
+    assert est.obj_ids.tolist() == [2]
+
+
 def test_select_top_instances():
     det = Detections(torch.tensor([[0, 0, 10, 10]] * 6, dtype=torch.float32), torch.tensor([1, 2, 1, 1, 2, 5]),
                      torch.tensor([0.2, 0.9, 0.8, 0.5, 0.3, 0.7]))

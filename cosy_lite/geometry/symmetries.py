@@ -1,6 +1,6 @@
 """Global object symmetries (metres): discovery, and the BOP discretisation used by MSSD/MSPD.
 
-Two functions:
+Three functions:
 
 * :func:`symmetry_transforms` turns an object's symmetries (:class:`SymmetryInfo`, e.g. a
   :class:`~cosy_lite.bop.io.ModelInfo`) into the finite set of
@@ -10,6 +10,7 @@ Two functions:
   Hausdorff distance between the vertices ``V`` and ``S V`` is below
   ``eps = max(15 mm, 0.1 * diameter)``; the second step, dropping symmetries the texture resolves
   (done by hand by the organisers), is automated with a colour test.
+* :func:`rotation_errors_deg`: the angle from a rotation to the closest pose of a symmetry set.
 
 A symmetry ``S`` maps model coordinates to model coordinates: ``x' = S[:3,:3] @ x + S[:3,3]``.
 """
@@ -284,3 +285,11 @@ def _search_axes(axes: list[np.ndarray], c: np.ndarray, checker: _Checker) -> tu
     out = np.array(discrete).reshape(-1, 4, 4)
     out[np.abs(out) < 1e-12] = 0.0  # sin(pi) etc.: exact zeros read better in models_info.json
     return out, continuous
+
+
+def rotation_errors_deg(R: np.ndarray, R_gt: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
+    """``[N]`` angles (deg) between each ``R [N,3,3]`` and the closest of ``R_gt @ S`` over the
+    object's symmetry rotations ``symmetries [S,3,3]`` (identity included)."""
+    equivalent = R_gt[None] @ symmetries  # [S,3,3]
+    trace = np.einsum("nij,sij->ns", R, equivalent)
+    return np.degrees(np.arccos(np.clip((trace - 1) / 2, -1.0, 1.0))).min(axis=1)

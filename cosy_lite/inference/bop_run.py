@@ -262,7 +262,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         det = det.select(~bad)
         if given is None:  # the detector's: all of them, for the BOP 2D tasks
             detector_entries += detections_to_bop22({(scene_id, im_id): det})
-        det = choose[(scene_id, im_id)](det)
+        det = choose[(scene_id, im_id)](predictor.detection_filter(det))
         est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
         t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
         summary.image_times.append(t_image)

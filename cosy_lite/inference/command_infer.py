@@ -37,6 +37,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
+    ap.add_argument("--scorer", type=Path, default=None, metavar="CKPT",
+                    help="--start appearance: the coarse scorer (train.py --model scorer) that describes the detections "
+                         "(none: frozen ImageNet features)")
     ap.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
     ap.add_argument("--start", default=None, choices=STARTS,
                     help="start poses: coarse (box pose -> the coarse network, CosyPose; the default) or templates "
@@ -46,6 +49,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--candidates", type=int, default=None, metavar="K",
                     help="--start templates: the K best templates each get one refiner iteration, the most "
                          "confident goes on (K > 1 needs a flow refiner; default 1)")
+    ap.add_argument("--min-score", type=float, default=0.0, metavar="S",
+                    help="pose only detections scoring at least S (default 0: all; for BOP19 any threshold only "
+                         "lowers AR, bench/RESULTS.md 'Detection threshold')")
+    ap.add_argument("--one-per-region", action="store_true",
+                    help="at most one detection per image region (mask IoU > 0.5, any class; the best scored)")
     ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
     ap.add_argument("--icp-set", nargs="+", default=[], metavar="KEY=VALUE",
                     help="ICP settings (cosy_lite.inference.icp.IcpConfig), e.g. max_translation=0.1 or "
@@ -74,7 +82,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 # backend -> arguments that only it takes (anything given there for the other backend is an error)
-BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector", "pretrained"), "onnx": ("models",)}
+BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector", "pretrained", "scorer"), "onnx": ("models",)}
 PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
 
 
@@ -104,6 +112,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
                                ("--candidates", args.candidates, 1)):
         if value is not None and value < least:
             return f"{name} {value}: expected an integer >= {least}"
+    if not 0.0 <= args.min_score <= 1.0:
+        return f"--min-score {args.min_score}: expected a score in [0, 1]"
     return None
 
 
@@ -114,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.results import results_filename
     from cosy_lite.inference.bop_run import run_on_split
+    from cosy_lite.inference.detection_filter import DetectionFilter
     from cosy_lite.config import load_config
     from cosy_lite.errors import ConfigError
     from cosy_lite.inference.icp import IcpConfig
@@ -149,11 +160,13 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = BopDataset(root)
+    detection_filter = DetectionFilter(args.min_score, args.one_per_region)
     if args.backend == "onnx":
         predictor = Predictor.from_onnx(
             args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
             icp_config=icp_config, threads=args.threads, precision=args.precision, detector=args.detections is None,
-            start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache)
+            start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache,
+            detection_filter=detection_filter)
         if args.detections is None and predictor.detector is None:
             raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
@@ -165,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
             refiner=args.refiner, dataset=dataset, device=device,
             n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
             icp_config=icp_config, precision=args.precision, start=args.start, n_candidates=args.candidates,
-            templates_cache=args.templates_cache)
+            templates_cache=args.templates_cache, scorer=args.scorer, detection_filter=detection_filter)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
                            args.limit_images, progress=not args.no_progress, detector_path=detector_path,

@@ -56,6 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "--coarse/--refiner/--detector/--start/--candidates given as well win")
     p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint (torch backend)")
     p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (torch backend)")
+    p.add_argument("--scorer", type=Path, default=None, metavar="CKPT",
+                   help="--start appearance: the coarse scorer that describes the detections (torch backend)")
     p.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint (torch backend)")
     p.add_argument("--onnx", type=Path, default=None, metavar="EXPORT_DIR",
                    help="a 'cosy-lite export' folder: the networks in onnxruntime (instead of checkpoints)")
@@ -67,6 +69,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", default=None, choices=STARTS,
                    help="start poses: coarse network (default) or silhouette templates matched to the detection "
                         "masks (no coarse checkpoint needed)")
+    p.add_argument("--min-score", type=float, default=0.0, metavar="S",
+                   help="pose only detections scoring at least S (default 0: all)")
+    p.add_argument("--one-per-region", action="store_true",
+                   help="at most one detection per image region (mask IoU > 0.5, any class; the best scored)")
     p.add_argument("--candidates", type=int, default=None, metavar="K",
                    help="--start templates: templates tried per detection, the flow refiner's most confident kept")
     p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
@@ -107,8 +113,10 @@ def models_folder(name_or_dir: str) -> Path:
 
 
 def _argument_problem(args: argparse.Namespace) -> str | None:
-    if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector, args.pretrained)):
-        return "give either checkpoints (--pretrained/--coarse/--refiner/--detector) or --onnx EXPORT_DIR, not both"
+    if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector, args.pretrained,
+                                                             args.scorer)):
+        return ("give either checkpoints (--pretrained/--coarse/--refiner/--detector/--scorer) or --onnx EXPORT_DIR, "
+                "not both")
     if args.onnx is None and args.coarse is None and not (args.start in TEMPLATE_STARTS and args.refiner is not None):
         return ("give --coarse CKPT [--refiner CKPT --detector CKPT] (torch), --start templates --refiner CKPT, "
                 "or --onnx EXPORT_DIR (onnxruntime)")
@@ -116,6 +124,8 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
         return "no detections: give --detector CKPT or --detections FILE.json"
     if args.icp and args.depth is None:
         return "--icp needs --depth DEPTH (the depth image it aligns the models with)"
+    if not 0.0 <= args.min_score <= 1.0:
+        return f"--min-score {args.min_score}: expected a score in [0, 1]"
     if args.depth_scale is not None and not (np.isfinite(args.depth_scale) and args.depth_scale > 0):
         return f"--depth-scale {args.depth_scale}: expected a number > 0 (depth value * S = mm)"
     for name, value, least in (("--threads", args.threads, 1), ("--n-refiner-iters", args.n_refiner_iters, 0),
@@ -185,8 +195,11 @@ def _load_inputs(args: argparse.Namespace):
 def _build_predictor(args: argparse.Namespace, models_dir: Path):
     from cosy_lite.inference.predictor import Predictor, SetupError
 
+    from cosy_lite.inference.detection_filter import DetectionFilter
+
     common = dict(models_dir=models_dir, n_refiner_iterations=args.n_refiner_iters, icp=args.icp, obj_ids=args.objects,
-                  start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache)
+                  start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache,
+                  detection_filter=DetectionFilter(args.min_score, args.one_per_region))
     if args.onnx is not None:
         p = Predictor.from_onnx(args.onnx, threads=args.threads, detector=args.detections is None, **common)
         if args.detections is None and p.detector is None:
@@ -196,7 +209,7 @@ def _build_predictor(args: argparse.Namespace, models_dir: Path):
     if args.refiner is None:
         common["n_refiner_iterations"] = 0
     return Predictor.from_checkpoints(detector=args.detector if args.detections is None else None, coarse=args.coarse,
-                                      refiner=args.refiner, device=args.device, **common)
+                                      refiner=args.refiner, device=args.device, scorer=args.scorer, **common)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,7 +17,7 @@ from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError, CosyLiteError
 from cosy_lite.model_files.loaders import PoseModel
 from cosy_lite.inference.starts import TEMPLATE_STARTS
-from cosy_lite.models.silhouette_templates import SilhouetteTemplates, file_key
+from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 
 
 class SetupError(CosyLiteError):
@@ -92,17 +92,14 @@ def objects_and_renderer(models: ObjectModels, ids: list[int], n_points: int | N
 
 
 def start_templates(start: str, models: ObjectModels, objects: Any, renderer: Any,
-                    cache_dir: str | Path | None) -> SilhouetteTemplates | None:
+                    cache_dir: str | Path | None, scorer: Any = None) -> SilhouetteTemplates | None:
     """The templates of a template start (``"templates"``, ``"appearance"``: with appearance
-    descriptors; None otherwise), cached in ``cache_dir`` by the hash
-    of each object's mesh file."""
+    descriptors, and the trained ``scorer`` describing the detections when given; None otherwise),
+    cached in ``cache_dir`` by the hash of each object's mesh file
+    (:func:`~cosy_lite.models.appearance_templates.object_templates`)."""
     if start not in TEMPLATE_STARTS:
         return None
-    keys = {} if cache_dir is None else {i: file_key(models.models_dir / f"obj_{int(i):06d}.ply") for i in objects.obj_ids}
-    templates = SilhouetteTemplates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
-                                    cache_dir=cache_dir, model_keys=keys)
-    if start == "appearance":
-        from cosy_lite.models.appearance_templates import AppearanceTemplates
+    from cosy_lite.models.appearance_templates import object_templates
 
-        AppearanceTemplates(templates, renderer, cache_dir=cache_dir, model_keys=keys)  # attaches itself
-    return templates
+    return object_templates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
+                            models.models_dir, cache_dir, appearance=start == "appearance", scorer=scorer)

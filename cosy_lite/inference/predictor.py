@@ -39,6 +39,7 @@ from torch import Tensor, nn
 from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_boxes, describe_boxes
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
+from cosy_lite.inference.detection_filter import DetectionFilter
 from cosy_lite.inference.icp import IcpConfig
 from cosy_lite.inference.network_runtime import PRECISIONS, Clock, TimedRenderer, flush_denormals, inference_net, timed_net
 from cosy_lite.inference.object_models import (SetupError, object_models, objects_and_renderer, render_shading,
@@ -72,6 +73,22 @@ def _as_K(K: Any) -> Tensor:
     return K
 
 
+def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer: Any) -> nn.Module:
+    """The coarse scorer network of ``path``, checked against the pipeline it joins."""
+    from cosy_lite.model_files.loaders import load_scorer
+
+    if start != "appearance":
+        raise SetupError(f"{path}: a coarse scorer ranks the templates of start='appearance', not start={start!r}")
+    scorer = load_scorer(path)
+    if missing := sorted(set(obj_ids) - set(scorer.obj_ids)):
+        raise SetupError(f"{path}: the scorer was not trained on obj_ids {missing} (it knows {scorer.obj_ids})")
+    shading = getattr(renderer, "shading", None)
+    if shading != scorer.shading:
+        raise SetupError(f"{path}: the scorer was trained against templates rendered with {scorer.shading!r} shading, "
+                         f"but this pipeline renders with {shading!r} (the refiner's render_shading)")
+    return scorer.net
+
+
 class Predictor:
     """Detector -> coarse -> refiner -> optional depth ICP, for single images.
 
@@ -97,6 +114,8 @@ class Predictor:
         n_candidates: templates tried per detection (``start="templates"``; > 1 needs a flow refiner).
         templates: the :class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates` to match
             (None: 2,048 per object, rendered with ``renderer`` on first use of each object).
+        detection_filter: which detections get a pose (a score threshold, one per region;
+            :class:`~cosy_lite.inference.detection_filter.DetectionFilter`; default: all).
     """
 
     def __init__(self, coarse: PoseModel, refiner: PoseModel | None, objects: Any, renderer: Any,
@@ -104,7 +123,7 @@ class Predictor:
                  icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
                  device: str | torch.device = "cpu", batch_size: int = 32, channels_last: bool = True,
                  precision: str = "fp32", fuse_bn: bool = True, start: str = "coarse", n_candidates: int = 1,
-                 templates: SilhouetteTemplates | None = None):
+                 templates: SilhouetteTemplates | None = None, detection_filter: DetectionFilter | None = None):
         if start not in STARTS:
             raise ValueError(f"start must be one of {STARTS}, got {start!r}")
         if coarse is None and start == "coarse":
@@ -137,6 +156,7 @@ class Predictor:
         if start == "appearance" and templates.appearance is None:
             AppearanceTemplates(templates, renderer)  # attaches itself: templates.match ranks by appearance
         self.templates = templates
+        self.detection_filter = detection_filter or DetectionFilter()
         if isinstance(detector, nn.Module):  # else an onnxruntime detector (OnnxDetector)
             detector.to(self.device).eval()
         self._nets: dict[str, nn.Module | Callable[[Tensor], Tensor]] = {}
@@ -157,7 +177,8 @@ class Predictor:
         device: str | torch.device = "cpu", n_refiner_iterations: int = 4, icp: bool = False,
         icp_config: IcpConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
         precision: str = "fp32", start: str = "coarse", n_candidates: int = 1,
-        templates_cache: str | Path | None = None,
+        templates_cache: str | Path | None = None, scorer: str | Path | None = None,
+        detection_filter: DetectionFilter | None = None,
     ) -> "Predictor":
         """Load the checkpoints and the object models.
 
@@ -171,6 +192,9 @@ class Predictor:
             precision: "fp32" or "bf16" (see the class); start, n_candidates: as the class
                 (``start="templates"`` needs no coarse checkpoint); templates_cache: a folder where
                 the rendered templates are kept between runs (None: rendered in every run).
+            scorer: a coarse scorer file (``train.py --model scorer``) that describes the detections
+                of ``start="appearance"`` (None: the frozen ImageNet features on both sides).
+            detection_filter: as the class.
         Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
         a checkpoint does not cover the objects.
         """
@@ -189,9 +213,11 @@ class Predictor:
         objects, renderer, syms = objects_and_renderer(models, ids, n_points, icp,
                                                     render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
-        templates = start_templates(start, models, objects, renderer, templates_cache)
+        scorer_net = None if scorer is None else _load_scorer(scorer, start, ids, renderer)
+        templates = start_templates(start, models, objects, renderer, templates_cache, scorer_net)
         return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
-                   syms, device, precision=precision, start=start, n_candidates=n_candidates, templates=templates)
+                   syms, device, precision=precision, start=start, n_candidates=n_candidates, templates=templates,
+                   detection_filter=detection_filter)
 
     @classmethod
     def from_pretrained(
@@ -199,7 +225,7 @@ class Predictor:
         device: str | torch.device = "cpu", icp: bool = False, icp_config: IcpConfig | None = None,
         obj_ids: Sequence[int] | None = None, precision: str = "fp32", start: str | None = None,
         n_candidates: int | None = None, n_refiner_iterations: int | None = None,
-        templates_cache: str | Path | None = None,
+        templates_cache: str | Path | None = None, detection_filter: DetectionFilter | None = None,
     ) -> "Predictor":
         """The shipped reference models ``name`` (:mod:`cosy_lite.model_files.reference_models`, e.g.
         ``"ycbvsynth"``) with the set's inference settings (start poses, candidates, refiner
@@ -220,7 +246,8 @@ class Predictor:
             detector=ref.path("detector") if detector else None, coarse=ref.path("coarse") if start == "coarse" else None,
             refiner=ref.path("refiner"), models_dir=models_dir, dataset=dataset, device=device,
             n_refiner_iterations=n_refiner_iterations, icp=icp, icp_config=icp_config, obj_ids=obj_ids,
-            precision=precision, start=start, n_candidates=n_candidates, templates_cache=templates_cache)
+            precision=precision, start=start, n_candidates=n_candidates, templates_cache=templates_cache,
+            scorer=ref.path("scorer") if start == "appearance" else None, detection_filter=detection_filter)
 
     @classmethod
     def from_onnx(
@@ -229,6 +256,7 @@ class Predictor:
         obj_ids: Sequence[int] | None = None, n_points: int | None = None, threads: int | None = None,
         precision: str = "fp32", detector: bool = True, spinning: bool = False, start: str = "coarse",
         n_candidates: int = 1, templates_cache: str | Path | None = None,
+        detection_filter: DetectionFilter | None = None,
     ) -> "Predictor":
         """The pipeline with the exported networks of ``export_dir`` (``cosy-lite export --out``)
         in onnxruntime on the CPU; crops, rendering, pose updates and ICP as :meth:`from_checkpoints`
@@ -246,7 +274,7 @@ class Predictor:
             detector: use ``detector.onnx`` when the export has one (False: detections are given).
             spinning: let idle onnxruntime threads spin (faster on a quiet machine, much slower on
                 a shared one).
-            start, n_candidates, templates_cache: as :meth:`from_checkpoints`.
+            start, n_candidates, templates_cache, detection_filter: as :meth:`from_checkpoints`.
         Raises OnnxModelError naming the file and field (missing / truncated / mismatched files,
         see :func:`~cosy_lite.export.onnx_models.load_onnx_models`), SetupError when the exported
         models or the object models do not cover the objects.
@@ -274,7 +302,7 @@ class Predictor:
         templates = start_templates(start, models, objects, renderer, templates_cache)
         return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, n_refiner_iterations, icp,
                    icp_config, syms, "cpu", precision="fp32", start=start, n_candidates=n_candidates,
-                   templates=templates)
+                   templates=templates, detection_filter=detection_filter)
 
     @property
     def backend(self) -> str:
@@ -333,8 +361,7 @@ class Predictor:
             raise ValueError(f"detections of obj_ids {unknown}, which the pose models do not know ({sorted(known)}); "
                              "pass obj_ids=... to keep only some")
         keep = torch.tensor([int(i) in wanted and int(i) in known for i in det.obj_ids.tolist()], dtype=torch.bool)
-        det = det.select(keep)
-        return det.select(torch.argsort(det.scores, descending=True, stable=True))
+        return self.detection_filter(det.select(keep))  # (by decreasing score)
 
     @torch.inference_mode()
     def predict(self, rgb: np.ndarray, K: Any, depth: np.ndarray | None = None, detections: Detections | None = None,

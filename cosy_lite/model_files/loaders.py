@@ -5,6 +5,8 @@ Pose networks: :func:`load_pose_model` (``kind`` "coarse" or "refiner", written 
 older files keep ``net`` and ``obj_ids`` in their training config, and are read from there).
 Detector: :func:`load_detector` (``kind`` "detector", written by
 :class:`cosy_lite.train.detector_task.DetectorTask`: ``meta = {"detector_config", "label_map", ...}``).
+Coarse scorer: :func:`load_scorer` (``kind`` "scorer", written by
+:class:`cosy_lite.train.scorer_task.ScorerTask`: ``meta = {"obj_ids", "trunk", "templates", ...}``).
 Every problem raises :class:`~cosy_lite.model_files.checkpoint.CheckpointError` naming the file.
 Exported networks (onnxruntime) are read by :func:`cosy_lite.export.onnx_models.load_onnx_models`
 into the same :class:`PoseModel`.
@@ -26,6 +28,7 @@ if TYPE_CHECKING:
 
 Size = tuple[int, int]
 DETECTOR_KIND = "detector"
+SCORER_KIND = "scorer"
 # the fields of a file's ``meta`` the loaders read: name -> (check, what is expected)
 META_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "obj_ids": (is_id_list, "a list of positive integers"),
@@ -33,6 +36,9 @@ META_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "detector_config": (lambda v: isinstance(v, dict), "a JSON object (the DetectorConfig)"),
     "label_map": (lambda v: isinstance(v, dict) and is_id_list(v.get("obj_ids")),
                   "a JSON object {'obj_ids': a list of positive integers}"),
+    "trunk": (lambda v: isinstance(v, str), "a trunk name (a string)"),
+    "templates": (lambda v: isinstance(v, dict) and isinstance(v.get("shading"), str),
+                  "a JSON object {'shading': how the templates were rendered, ...}"),
 }
 
 
@@ -120,3 +126,36 @@ def load_detector(path: str | Path, device: str | torch.device = "cpu") -> Detec
     except RuntimeError as e:
         raise CheckpointError(path, f"field 'model' does not fit the detector of 'meta' ({str(e).splitlines()[0]})") from None
     return model.to(device).eval()
+
+
+@dataclass
+class ScorerModel:
+    """The coarse scorer (:class:`~cosy_lite.models.appearance_scorer.AppearanceScorer`, eval mode),
+    the objects it was trained on, and how the templates it was trained against were rendered
+    (``shading``: its templates must be rendered the same way)."""
+
+    net: nn.Module
+    obj_ids: list[int]
+    shading: str
+    path: Path | None = None
+
+
+def load_scorer(path: str | Path, device: str | torch.device = "cpu") -> ScorerModel:
+    """The coarse scorer of the checkpoint or weights file at ``path``, in eval mode on ``device``."""
+    from cosy_lite.models.appearance_scorer import AppearanceScorer
+    from cosy_lite.models.pretrained import WEIGHTS
+
+    path = Path(path)
+    ckpt = load_checkpoint(path, kind=SCORER_KIND)
+    trunk = _meta_field(ckpt, path, "trunk", from_config=False)
+    obj_ids = _meta_field(ckpt, path, "obj_ids", from_config=False)
+    templates = _meta_field(ckpt, path, "templates", from_config=False)
+    if trunk not in WEIGHTS:
+        raise CheckpointError(path, f"field 'meta.trunk': {trunk!r} is not one of {sorted(WEIGHTS)}")
+    try:
+        net = AppearanceScorer(trunk, load_pretrained=False)
+        net.load_state_dict(ckpt.model)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(path, f"weights do not fit the scorer of meta.trunk {trunk!r} "
+                                    f"({type(e).__name__}: {e})") from None
+    return ScorerModel(net.to(device).eval(), sorted(int(i) for i in obj_ids), str(templates["shading"]), path)

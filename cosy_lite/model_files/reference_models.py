@@ -33,7 +33,7 @@ from typing import Any, Callable
 
 from cosy_lite.errors import CosyLiteError
 
-KINDS = ("detector", "coarse", "refiner")
+KINDS = ("detector", "coarse", "refiner", "scorer")
 PIPELINE_FILE = "pipeline.json"
 # infer.py settings of a set when its pipeline.json does not say otherwise
 DEFAULT_PIPELINE = {"start": "coarse", "n_candidates": 1, "n_refiner_iterations": 4}
@@ -110,7 +110,7 @@ class ReferenceModels:
     pipeline: dict[str, Any] = field(default_factory=dict)
 
     def path(self, kind: str) -> Path | None:
-        """The weights file of ``kind`` ("detector", "coarse", "refiner"), None if the set has none."""
+        """The weights file of ``kind`` (:data:`KINDS`), None if the set has none."""
         return self.weights.get(kind)
 
     def setting(self, key: str) -> Any:
@@ -232,7 +232,8 @@ def fill_arguments(args: Any, use_networks: bool = True) -> None:
     """Complete a command line's namespace from its ``--pretrained NAME`` (``args.pretrained``): where
     the namespace has them and they are None, ``args.start`` / ``args.candidates`` (the set's
     settings, else the defaults of :data:`DEFAULT_PIPELINE`); then the set's networks where
-    ``args.detector`` / ``.refiner`` are None, and ``.coarse`` when the poses start from it
+    ``args.detector`` / ``.refiner`` are None, ``.coarse`` when the poses start from it and
+    ``.scorer`` when they start from the appearance templates
     (``use_networks`` False: networks left as they are, for a backend that does not take them).
     Raises ReferenceModelError for an unknown name."""
     settings = {"start": DEFAULT_PIPELINE["start"], "candidates": DEFAULT_PIPELINE["n_candidates"]}
@@ -245,8 +246,10 @@ def fill_arguments(args: Any, use_networks: bool = True) -> None:
         if hasattr(args, key) and getattr(args, key) is None:
             setattr(args, key, value)
     if ref is not None:
-        for kind in KINDS:  # the coarse network only where the poses start from it (export: all)
-            if getattr(args, kind) is None and (kind != "coarse" or getattr(args, "start", "coarse") == "coarse"):
+        start = getattr(args, "start", None)
+        needed = {"coarse": start in (None, "coarse"), "scorer": start in (None, "appearance")}  # (export: all)
+        for kind in KINDS:
+            if hasattr(args, kind) and getattr(args, kind) is None and needed.get(kind, True):
                 setattr(args, kind, ref.path(kind))
 
 

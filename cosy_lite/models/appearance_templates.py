@@ -27,7 +27,7 @@ import hashlib
 import os
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from cosy_lite.models.silhouette_templates import (BOX_MARGIN, TEMPLATE_SIZE, MaskView, SilhouetteTemplates,
-                                                   mask_boxes)
+                                                   file_key, mask_boxes)
 
 CROP_SIZE = 64  # px: the square each template and detection is described at
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -90,16 +90,21 @@ class AppearanceTemplates:
             their ``appearance`` so that their ``match`` ranks by appearance when given the image.
         renderer: a renderer of the objects with the refiner's shading (``headlight``).
         descriptor: an :class:`AppearanceDescriptor` (default: built, ImageNet weights read once).
-        iou_weight: weight of the silhouette soft IoU in the score.
+        iou_weight: weight of the silhouette soft IoU in the score (with a ``scorer``: its own).
         cache_dir, model_keys: as :class:`SilhouetteTemplates` (descriptors kept as float16 ``.npz``).
+        scorer: a trained :class:`~cosy_lite.models.appearance_scorer.AppearanceScorer` that
+            describes the detections (the templates keep the frozen ``descriptor``); None: the
+            frozen descriptor on both sides.
     """
 
     def __init__(self, silhouettes: SilhouetteTemplates, renderer: Any, descriptor: AppearanceDescriptor | None = None,
-                 iou_weight: float = 0.5, cache_dir: str | Path | None = None, model_keys: dict[int, str] | None = None):
+                 iou_weight: float = 0.5, cache_dir: str | Path | None = None, model_keys: dict[int, str] | None = None,
+                 scorer: nn.Module | None = None):
         self.silhouettes = silhouettes
         self.renderer = renderer
         self.descriptor = descriptor or AppearanceDescriptor()
-        self.iou_weight = float(iou_weight)
+        self.scorer = None if scorer is None else scorer.eval()
+        self.iou_weight = float(iou_weight) if scorer is None else float(scorer.iou_weight.detach())
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.model_keys = {int(k): str(v) for k, v in (model_keys or {}).items()}
         self._cache: dict[int, Tensor] = {}
@@ -139,18 +144,43 @@ class AppearanceTemplates:
         return torch.cat(out)
 
     def describe(self, rgb: np.ndarray, view: MaskView, K: np.ndarray) -> Tensor:
-        """``[D]``: the detection of ``view`` in the image ``rgb [H,W,3]`` uint8, seen as the templates are."""
-        H = K @ view.R.T @ np.linalg.inv(K)  # real image -> the turned camera's image (as the mask)
-        h, w = view.mask.shape
-        turned = cv2.warpPerspective(np.ascontiguousarray(rgb), H, (w, h), flags=cv2.INTER_LINEAR)
+        """``[D]``: the detection of ``view`` in the image ``rgb [H,W,3]`` uint8, seen as the templates
+        are (by the trained scorer when there is one)."""
         with torch.no_grad():
-            return self.descriptor(square_crops(turned[None], view.mask[None], view.box[None]))[0]
+            return (self.descriptor if self.scorer is None else self.scorer)(detection_crop(rgb, view, K)[None])[0]
 
     def score(self, obj_id: int, rgb: np.ndarray, view: MaskView, K: np.ndarray, iou: np.ndarray) -> np.ndarray:
         """``[N]`` scores of the templates of ``obj_id`` for the detection of ``view`` (``iou``: their
         silhouette soft IoU)."""
         similarity = self.descriptors(obj_id) @ self.describe(rgb, view, K)
         return similarity.double().numpy() + self.iou_weight * np.asarray(iou, dtype=np.float64)
+
+
+def object_templates(renderer: Any, obj_ids: Sequence[int], diameters: Sequence[float], models_dir: str | Path,
+                     cache_dir: str | Path | None, appearance: bool = True, scorer: nn.Module | None = None,
+                     n_rotations: int = 2048) -> SilhouetteTemplates:
+    """The silhouette templates of ``obj_ids`` (``diameters`` in m), with their appearance scorer
+    attached when ``appearance`` (the trained ``scorer`` describing detections when given); with a
+    ``cache_dir``, kept there keyed by the sha256 of each ``models_dir/obj_XXXXXX.ply``."""
+    keys = {} if cache_dir is None else {int(i): file_key(Path(models_dir) / f"obj_{int(i):06d}.ply") for i in obj_ids}
+    templates = SilhouetteTemplates(renderer, obj_ids, diameters, n_rotations, cache_dir=cache_dir, model_keys=keys)
+    if appearance:
+        AppearanceTemplates(templates, renderer, cache_dir=cache_dir, model_keys=keys, scorer=scorer)  # attaches itself
+    return templates
+
+
+def textured_obj_ids(renderer: Any, obj_ids: Sequence[int]) -> list[int]:
+    """The objects whose mesh carries a texture image (their print can tell a flipped pose)."""
+    return [o for o in obj_ids if getattr(renderer.mesh(o).visual, "kind", None) == "texture"]
+
+
+def detection_crop(rgb: np.ndarray, view: MaskView, K: np.ndarray) -> Tensor:
+    """``[3,S,S]`` float32 in [0, 1]: the image ``rgb [H,W,3]`` uint8 turned as the mask of ``view``
+    (:meth:`SilhouetteTemplates.observe`), cut to the square around its box, outside the mask black."""
+    H = K @ view.R.T @ np.linalg.inv(K)  # real image -> the turned camera's image (as the mask)
+    h, w = view.mask.shape
+    turned = cv2.warpPerspective(np.ascontiguousarray(rgb), H, (w, h), flags=cv2.INTER_LINEAR)
+    return square_crops(turned[None], view.mask[None], view.box[None])[0]
 
 
 def _write_descriptors(path: Path, d: Tensor) -> None:

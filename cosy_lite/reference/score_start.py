@@ -20,26 +20,16 @@ from typing import Any
 
 import numpy as np
 
+from cosy_lite.geometry.symmetries import rotation_errors_deg
+
 WITHIN_DEG = 30.0
 FLIPPED_DEG = 150.0
 
 
-def rotation_errors_deg(R: np.ndarray, R_gt: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
-    """``[N]`` angles (deg) between each ``R [N,3,3]`` and the closest of ``R_gt @ S`` over the
-    object's symmetry rotations ``symmetries [S,3,3]`` (identity included)."""
-    equivalent = R_gt[None] @ symmetries  # [S,3,3]
-    trace = np.einsum("nij,sij->ns", R, equivalent)
-    return np.degrees(np.arccos(np.clip((trace - 1) / 2, -1.0, 1.0))).min(axis=1)
-
-
-def textured_obj_ids(renderer: Any, obj_ids: list[int]) -> list[int]:
-    """The objects whose mesh carries a texture image (their print can tell a flipped pose)."""
-    return [o for o in obj_ids if getattr(renderer.mesh(o).visual, "kind", None) == "texture"]
-
-
 def score_start(dataset_root: str | Path, start: str = "appearance", n_candidates: int = 1,
                 refiner: str | Path | None = None, split: str = "test", min_visib: float = 0.5, n: int | None = None,
-                templates_cache: str | Path | None = None, seed: int = 0, progress: bool = True) -> dict[str, Any]:
+                templates_cache: str | Path | None = None, seed: int = 0, progress: bool = True,
+                scorer: str | Path | None = None) -> dict[str, Any]:
     """The numbers of the module doc as a dict (``within_30deg``, ``flipped_textured``,
     ``median_deg``, ``any_candidate_within_30deg``, ``seconds_per_instance``, ``instances``, ...)."""
     import torch
@@ -49,7 +39,8 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.errors import CosyLiteError
     from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer, start_templates
-    from cosy_lite.model_files.loaders import load_pose_model
+    from cosy_lite.models.appearance_templates import textured_obj_ids
+    from cosy_lite.model_files.loaders import load_pose_model, load_scorer
     from cosy_lite.models.render_and_compare import refine_and_score
 
     if n_candidates > 1 and refiner is None:
@@ -64,7 +55,10 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
     obj_ids = sorted(ds.models_info)
     objects, renderer, _ = objects_and_renderer(models, obj_ids, None, icp=False,
                                                 shading=model.render_shading if model else "headlight")
-    templates = start_templates(start, models, objects, renderer, templates_cache)
+    if scorer is not None and start != "appearance":
+        raise CosyLiteError(f"--scorer {scorer}: a coarse scorer ranks the appearance templates (--start appearance)")
+    scorer_net = None if scorer is None else load_scorer(scorer).net
+    templates = start_templates(start, models, objects, renderer, templates_cache, scorer_net)
     assert templates is not None
     textured = set(textured_obj_ids(renderer, obj_ids))
     chosen, best, flipped_textured = [], [], []
@@ -103,6 +97,7 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
         raise CosyLiteError(f"{dataset_root}: no instance could be matched (every mask empty)")
     errors = np.array(chosen)
     return {"split": split, "start": start, "candidates": n_candidates, "refiner": None if refiner is None else str(refiner),
+            "scorer": None if scorer is None else str(scorer),
             "min_visib": min_visib, "instances": len(chosen), "textured_instances": len(flipped_textured),
             "within_30deg": float(np.mean(errors < WITHIN_DEG)),
             "flipped_textured": float(np.mean(flipped_textured)) if flipped_textured else None,
@@ -120,6 +115,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--candidates", type=int, default=1, help="> 1: the most confident of the K best (needs --refiner)")
     p.add_argument("--refiner", default=None, metavar="FILE_OR_NAME",
                    help="refiner checkpoint / .safetensors or reference set name (for --candidates > 1)")
+    p.add_argument("--scorer", default=None, metavar="FILE_OR_NAME",
+                   help="--start appearance: the coarse scorer (a file, or a reference set name: its scorer)")
     p.add_argument("--min-visib", type=float, default=0.5, help="instances at least this visible")
     p.add_argument("-n", type=int, default=None, help="at most this many instances (drawn with --seed)")
     p.add_argument("--seed", type=int, default=0)
@@ -129,6 +126,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cosy_lite.errors import CosyLiteError
     from cosy_lite.model_files.reference_models import reference_models, reference_names
     from cosy_lite.render.gl import use_egl
     from cosy_lite.synth.command import dataset_folder
@@ -137,8 +135,13 @@ def run(args: argparse.Namespace) -> int:
     refiner = args.refiner
     if refiner is not None and refiner in reference_names():
         refiner = reference_models(refiner).path("refiner")
+    scorer = args.scorer
+    if scorer is not None and scorer in reference_names():
+        name, scorer = scorer, reference_models(scorer).path("scorer")
+        if scorer is None:
+            raise CosyLiteError(f"--scorer {name}: the reference set {name!r} has no scorer")
     out = score_start(dataset_folder(args.dataset, None), args.start, args.candidates, refiner, args.split,
-                      args.min_visib, args.n, args.templates_cache, args.seed, progress=not args.no_progress)
+                      args.min_visib, args.n, args.templates_cache, args.seed, progress=not args.no_progress, scorer=scorer)
     print(json.dumps(out, indent=1))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""``cosy-lite train --model coarse|refiner|detector`` (also ``python train.py ...``): arguments ->
+"""``cosy-lite train --model coarse|refiner|detector|scorer`` (also ``python train.py ...``): arguments ->
 dataset (generated if a synthetic one is absent, validated) -> config -> task -> the training loop.
 
 The config is ``configs/MODEL/PROFILE.yaml`` shipped in the package (:func:`cosy_lite.config.packaged_config`)
@@ -18,7 +18,7 @@ from typing import Any, Callable
 from cosy_lite.config import load_config, packaged_config, save_config
 from cosy_lite.errors import ConfigError
 
-MODELS = ("detector", "coarse", "refiner")
+MODELS = ("detector", "coarse", "refiner", "scorer")
 # synthetic datasets generated when absent: name -> the packaged YAML of its differences (None: the defaults)
 SYNTH_CONFIGS: dict[str, tuple[str, ...] | None] = {"ycbvsynth": None, "tiny": ("synth", "tiny.yaml")}
 
@@ -33,6 +33,18 @@ def _detector_task(cfg, root: Path):
     from cosy_lite.train.detector_task import DetectorTask
 
     return DetectorTask(cfg, root)
+
+
+def _scorer_task(cfg, root: Path):
+    from cosy_lite.train.scorer_task import ScorerTask
+
+    return ScorerTask(cfg, root)
+
+
+def _scorer_config():
+    from cosy_lite.train.scorer_task import ScorerTrainConfig
+
+    return ScorerTrainConfig
 
 
 def _pose_config():
@@ -52,6 +64,7 @@ TASKS: dict[str, tuple[Callable[[], type], Callable[[Any, Path], Any]]] = {
     "coarse": (_pose_config, _pose_task),
     "refiner": (_pose_config, _pose_task),
     "detector": (_detector_config, _detector_task),
+    "scorer": (_scorer_config, _scorer_task),
 }
 
 

@@ -1,0 +1,120 @@
+"""Instances as the start stage sees them, computed once: what the coarse scorer trains on.
+
+For each GT instance (its visible mask standing in for a detection): the crop that
+:func:`~cosy_lite.models.appearance_templates.detection_crop` cuts (uint8), the silhouette soft IoU
+of each of its object's templates, and each template pose's rotation error to GT (deg,
+symmetry-aware), the pose placed on the detection exactly as inference places it
+(:meth:`SilhouetteTemplates.observe` / ``poses``). ~80 ms per instance on one core, so a split is
+described once and cached as ``.npz`` (no pickle) keyed by the dataset folder, split, instance
+selection and template settings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from cosy_lite.geometry.symmetries import rotation_errors_deg
+from cosy_lite.models.appearance_templates import CROP_SIZE, detection_crop
+from cosy_lite.models.silhouette_templates import SilhouetteTemplates, mask_boxes
+
+FIELDS = ("obj_ids", "crops", "iou", "errors_deg")
+
+
+@dataclass
+class StartObservations:
+    """``obj_ids [M]`` int64, ``crops [M,3,S,S]`` uint8, ``iou [M,N]`` and ``errors_deg [M,N]`` float16
+    (N: templates per object)."""
+
+    obj_ids: Tensor
+    crops: Tensor
+    iou: Tensor
+    errors_deg: Tensor
+
+    def __len__(self) -> int:
+        return len(self.obj_ids)
+
+    def subset(self, index: Tensor | Sequence[int]) -> "StartObservations":
+        index = torch.as_tensor(index, dtype=torch.long)
+        return StartObservations(self.obj_ids[index], self.crops[index], self.iou[index], self.errors_deg[index])
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, **{f: getattr(self, f).numpy() for f in FIELDS})
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: Path) -> "StartObservations | None":
+        """The observations at ``path``; None when absent or damaged (then computed again)."""
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                obs = cls(*(torch.from_numpy(f[k]) for k in FIELDS))
+            m = len(obs.obj_ids)
+            if not (len(obs.crops) == len(obs.iou) == len(obs.errors_deg) == m and obs.crops.dtype == torch.uint8):
+                raise ValueError("fields of different lengths or types")
+            return obs
+        except Exception as e:  # noqa: BLE001 - any damage: compute again
+            warnings.warn(f"{path}: start observations unreadable ({e}); computing them again", RuntimeWarning,
+                          stacklevel=2)
+            return None
+
+
+def observe(instance: Any, templates: SilhouetteTemplates,
+            symmetries: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray] | None:
+    """(crop uint8 [3,S,S], iou [N], errors_deg [N]) of one :class:`~cosy_lite.structures.PoseSample`
+    (``rgb``, ``mask``, ``K``, ``TCO``, ``obj_id``); ``symmetries [S,3,3]`` of its object. None when its
+    mask is empty or the turned camera does not see it."""
+    mask = instance.mask.numpy().astype(bool)
+    K = instance.K.double().numpy()
+    box = mask_boxes(mask[None])[0]
+    if not np.isfinite(box).all():
+        return None
+    view = templates.observe(mask, box, K)
+    if view is None:
+        return None
+    rgb = instance.rgb.permute(1, 2, 0).numpy()
+    crop = (detection_crop(rgb, view, K) * 255).round().to(torch.uint8)
+    t = templates.templates(instance.obj_id)
+    iou = templates.silhouette_iou(t, view.grid)
+    poses = templates.poses(t, np.arange(len(t.rotations)), view, K)
+    errors = rotation_errors_deg(poses[:, :3, :3], instance.TCO[:3, :3].double().numpy(), symmetries)
+    return crop, iou, errors
+
+
+def observe_all(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
+                desc: str = "start observations", progress: bool = True) -> StartObservations:
+    """:func:`observe` for every item of ``instances`` (a dataset of PoseSamples); ``symmetries``:
+    obj_id -> ``[S,3,3]``. Instances that cannot be observed are left out."""
+    from tqdm import tqdm
+
+    ids, crops, ious, errors = [], [], [], []
+    for i in tqdm(range(len(instances)), desc=desc, unit="instance", disable=not progress):
+        item = instances[i]
+        seen = observe(item, templates, symmetries[int(item.obj_id)])
+        if seen is None:
+            continue
+        ids.append(int(item.obj_id))
+        crops.append(seen[0])
+        ious.append(torch.from_numpy(seen[1]).half())
+        errors.append(torch.from_numpy(seen[2]).half())
+    n = templates.n_rotations
+    if not ids:
+        return StartObservations(torch.zeros(0, dtype=torch.long), torch.zeros((0, 3, CROP_SIZE, CROP_SIZE), dtype=torch.uint8),
+                                 torch.zeros((0, n), dtype=torch.half), torch.zeros((0, n), dtype=torch.half))
+    return StartObservations(torch.tensor(ids), torch.stack(crops), torch.stack(ious), torch.stack(errors))
+
+
+def cache_key(*parts: Any) -> str:
+    """A short hash of the settings that decide the observations."""
+    return hashlib.sha256("|".join(str(p) for p in parts).encode()).hexdigest()[:20]
