@@ -135,6 +135,34 @@ def test_command_lines_take_the_sets_networks_and_settings_unless_given():
     assert (args.start, args.candidates, args.detector) == ("coarse", 1, None)  # the defaults without a set
 
 
+def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, monkeypatch):
+    """Each field of the set's ``inference`` settings reaches the command line, and a flag given wins."""
+    from argparse import Namespace
+
+    folder = tmp_path / NAME
+    folder.mkdir()
+    for f in (reference_root() / NAME).iterdir():
+        (folder / f.name).symlink_to(f)
+    (folder / "pipeline.json").unlink()
+    pipeline = json.loads((reference_root() / NAME / "pipeline.json").read_text())
+    pipeline["inference"] = {"start": "templates", "n_candidates": 3, "n_refiner_iterations": 2}
+    (folder / "pipeline.json").write_text(json.dumps(pipeline))
+    monkeypatch.setenv("COSY_LITE_MODELS", str(tmp_path))
+    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, scorer=None, start=None,
+                     candidates=None, n_refiner_iters=None)
+    fill_arguments(args)
+    assert (args.start, args.candidates, args.n_refiner_iters) == ("templates", 3, 2)
+    assert args.scorer is None  # a scorer ranks the appearance start only
+    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, start=None, candidates=None,
+                     n_refiner_iters=0)
+    fill_arguments(args)
+    assert args.n_refiner_iters == 0  # given: kept
+    args = Namespace(pretrained=None, detector=None, coarse=None, refiner=None, start=None, candidates=None,
+                     n_refiner_iters=None)
+    fill_arguments(args)
+    assert args.n_refiner_iters == 4  # no set: the default
+
+
 def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
     from cosy_lite.inference.predictor import SetupError
 

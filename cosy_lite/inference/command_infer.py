@@ -40,7 +40,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--scorer", type=Path, default=None, metavar="CKPT",
                     help="--start appearance: the coarse scorer (train.py --model scorer) that describes the detections "
                          "(none: frozen ImageNet features)")
-    ap.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
+    ap.add_argument("--n-refiner-iters", type=int, default=None,
+                    help="refiner iterations (default: the --pretrained set's, else 4)")
     ap.add_argument("--start", default=None, choices=STARTS,
                     help="start poses: coarse (box pose -> the coarse network, CosyPose; the default) or templates "
                          "(the detection mask matched against rendered silhouettes; no coarse network needed)")

@@ -65,7 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="BOP22 detections of this image instead of the detector (all its entries must be one image)")
     p.add_argument("--objects", type=obj_id_list, default=None, metavar="1,5", help="estimate only these objects")
     p.add_argument("--icp", action="store_true", help="refine with --depth (point-to-plane ICP)")
-    p.add_argument("--n-refiner-iters", type=int, default=4, help="refiner iterations (default 4)")
+    p.add_argument("--n-refiner-iters", type=int, default=None,
+                    help="refiner iterations (default: the --pretrained set's, else 4)")
     p.add_argument("--start", default=None, choices=STARTS,
                    help="start poses: coarse network (default) or silhouette templates matched to the detection "
                         "masks (no coarse checkpoint needed)")

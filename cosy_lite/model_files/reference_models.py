@@ -230,16 +230,19 @@ def reference_models(name: str, root: Path | None = None) -> ReferenceModels:
 
 def fill_arguments(args: Any, use_networks: bool = True) -> None:
     """Complete a command line's namespace from its ``--pretrained NAME`` (``args.pretrained``): where
-    the namespace has them and they are None, ``args.start`` / ``args.candidates`` (the set's
-    settings, else the defaults of :data:`DEFAULT_PIPELINE`); then the set's networks where
-    ``args.detector`` / ``.refiner`` are None, ``.coarse`` when the poses start from it and
+    the namespace has them and they are None, ``args.start`` / ``args.candidates`` /
+    ``args.n_refiner_iters`` (the set's settings, else the defaults of :data:`DEFAULT_PIPELINE`);
+    then the set's networks where ``args.detector`` / ``.refiner`` are None, ``.coarse`` when the
+    poses start from it and
     ``.scorer`` when they start from the appearance templates
     (``use_networks`` False: networks left as they are, for a backend that does not take them).
     Raises ReferenceModelError for an unknown name."""
-    settings = {"start": DEFAULT_PIPELINE["start"], "candidates": DEFAULT_PIPELINE["n_candidates"]}
+    settings = {"start": DEFAULT_PIPELINE["start"], "candidates": DEFAULT_PIPELINE["n_candidates"],
+                "n_refiner_iters": DEFAULT_PIPELINE["n_refiner_iterations"]}
     ref = reference_models(args.pretrained) if getattr(args, "pretrained", None) is not None and use_networks else None
     if ref is not None:
-        settings = {"start": ref.setting("start"), "candidates": ref.setting("n_candidates")}
+        settings = {"start": ref.setting("start"), "candidates": ref.setting("n_candidates"),
+                    "n_refiner_iters": ref.setting("n_refiner_iterations")}
         if getattr(args, "start", None) not in (None, settings["start"]):
             settings["candidates"] = 1  # the set's candidate count belongs to its own start
     for key, value in settings.items():

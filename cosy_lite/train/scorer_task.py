@@ -147,6 +147,7 @@ class ScorerTask:
         self.train_obs = self._observations(cache, "train", key, train_set, symmetries, progress)
         self.val_obs = self._observations(cache, "val", key, val_set, symmetries, progress)
         self.template_descriptors = {o: t.appearance.descriptors(o) for o in self.obj_ids}
+        self._descriptors_device = torch.device("cpu")
         renderer.close()
         self._initialised_from: str | None = None
 
@@ -178,6 +179,9 @@ class ScorerTask:
 
     def _scores(self, model: torch.nn.Module, crops: Tensor, obj_ids: Tensor, iou: Tensor, device: torch.device) -> Tensor:
         net = model.module if hasattr(model, "module") else model
+        if self._descriptors_device != device:  # moved once (a GPU would otherwise copy ~35 MB per object and step)
+            self.template_descriptors = {o: d.to(device) for o, d in self.template_descriptors.items()}
+            self._descriptors_device = device
         descriptors = model(crops.to(device))
         return net.scores(descriptors, obj_ids.to(device), self.template_descriptors, iou.to(device).float())
 
