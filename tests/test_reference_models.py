@@ -114,8 +114,8 @@ def test_each_weights_file_is_hashed_once_per_process(tmp_path):
     reference_models(NAME)
     hashed = catalog._sha256.cache_info()
     n_files = sum(len(json.loads((reference_root() / NAME / f"{k}.json").read_text())["weights"])
-                  for k in ("detector", "refiner"))
-    assert n_files == 5 and hashed.misses == hashed.currsize == n_files  # the detector's 4 shards and the refiner
+                  for k in ("detector", "refiner", "scorer"))
+    assert n_files == 6 and hashed.misses == hashed.currsize == n_files  # the detector's 4 shards, refiner, scorer
     reference_models(NAME)
     assert catalog._sha256.cache_info().misses == hashed.misses  # from the cache: unchanged files
 
@@ -170,6 +170,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
     assert (p.start, p.n_candidates, p.n_refiner_iterations) == ("appearance", 1, 4)
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
+    assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]
     assert Predictor.from_pretrained(NAME, dataset=tiny_synth_root, obj_ids=[1, 5]).detector is not None
     with pytest.raises(SetupError, match="no models of obj_ids"):  # the tiny dataset has 4 of the 21 objects
