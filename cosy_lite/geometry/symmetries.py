@@ -287,6 +287,12 @@ def _search_axes(axes: list[np.ndarray], c: np.ndarray, checker: _Checker) -> tu
     return out, continuous
 
 
+# how a start pose is judged (cosy-lite score-start, the coarse scorer's validation): right within
+# WITHIN_DEG of GT, flipped beyond FLIPPED_DEG
+WITHIN_DEG = 30.0
+FLIPPED_DEG = 150.0
+
+
 def rotation_errors_deg(R: np.ndarray, R_gt: np.ndarray, symmetries: np.ndarray) -> np.ndarray:
     """``[N]`` angles (deg) between each ``R [N,3,3]`` and the closest of ``R_gt @ S`` over the
     object's symmetry rotations ``symmetries [S,3,3]`` (identity included)."""

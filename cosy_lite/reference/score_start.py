@@ -20,10 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from cosy_lite.geometry.symmetries import rotation_errors_deg
+from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG, rotation_errors_deg
 
-WITHIN_DEG = 30.0
-FLIPPED_DEG = 150.0
 
 
 def score_start(dataset_root: str | Path, start: str = "appearance", n_candidates: int = 1,

@@ -24,14 +24,11 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG
 from cosy_lite.models.appearance_scorer import AppearanceScorer, listwise_loss
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
 from cosy_lite.train.start_observations import StartObservations, cache_key, observe_all
-
-WITHIN_DEG = 30.0
-FLIPPED_DEG = 150.0
-
 
 @dataclass
 class ScorerDataConfig:
@@ -196,14 +193,11 @@ class ScorerTask:
 
     @torch.no_grad()
     def validate(self, model: torch.nn.Module, device: torch.device) -> dict[str, float]:
-        was_training = model.training
-        model.eval()
-        o = self.val_obs
+        o = self.val_obs  # (the loop puts the model in eval mode around validation)
         chosen = []
         for s in range(0, len(o), 64):
             scores = self._scores(model, o.crops[s:s + 64].float() / 255.0, o.obj_ids[s:s + 64], o.iou[s:s + 64], device)
             chosen.append(o.errors_deg[s:s + 64].float().gather(1, scores.argmax(dim=1, keepdim=True).cpu())[:, 0])
-        model.train(was_training)
         if not chosen:
             return {}
         err = torch.cat(chosen)
