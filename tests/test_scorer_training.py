@@ -56,6 +56,22 @@ def test_observations_are_the_instances_of_the_split_with_their_template_errors(
     assert torch.equal(again.train_obs.errors_deg, obs.errors_deg) and torch.equal(again.val_obs.crops, task.val_obs.crops)
 
 
+def test_observations_described_by_two_processes_equal_one(tiny_synth_root, cache, monkeypatch):
+    from cosy_lite.data.pose_dataset import PoseDataset
+    from cosy_lite.train import start_observations
+
+    monkeypatch.setattr(start_observations, "_CHUNK", 5)  # several chunks per worker, out of order if unsorted
+    observe_all = start_observations.observe_all
+
+    _, task = _task(tiny_synth_root, cache)
+    instances = PoseDataset(task.dataset, "train_pbr", obj_ids=task.obj_ids, min_visib_fract=0.0)
+    one = observe_all(instances, task.templates, task.symmetries, progress=False, workers=1)
+    two = observe_all(instances, task.templates, task.symmetries, progress=False, workers=2)
+    assert len(one) >= 20
+    for f in ("obj_ids", "crops", "iou", "errors_deg"):
+        assert torch.equal(getattr(one, f), getattr(two, f)), f
+
+
 def test_augmented_crops_stay_black_outside_and_in_range():
     x = torch.zeros(16, 3, 64, 64)
     x[:, :, 20:44, 20:44] = 0.5

@@ -40,6 +40,7 @@ class ScorerDataConfig:
     positive_deg: float = 15.0  # templates this close to GT are the positives of the listwise loss
     template_shading: str = "headlight"  # as the refiner renders (the templates of inference)
     cache_dir: str = ""  # observations and template descriptors; "": $COSY_LITE_CACHE or ~/.cache/cosy_lite
+    observe_workers: int = 0  # processes describing the instances; 0: the CPU cores / the training processes
 
 
 @dataclass
@@ -133,7 +134,7 @@ class ScorerTask:
         self.templates = object_templates(renderer, self.obj_ids, objects.diameters.detach().cpu().double().tolist(),
                                           self.dataset.models_dir, cache, n_rotations=cfg.data.n_templates)
         self.textured = set(textured_obj_ids(renderer, self.obj_ids))
-        symmetries = {o: objects.symmetries[i][objects.sym_mask[i]][:, :3, :3].double().numpy()
+        self.symmetries = symmetries = {o: objects.symmetries[i][objects.sym_mask[i]][:, :3, :3].double().numpy()
                       for i, o in enumerate(self.obj_ids)}
         full = PoseDataset(self.dataset, cfg.data.split, obj_ids=self.obj_ids, min_visib_fract=cfg.data.min_visib_fract)
         train_set, val_set = hold_out_images(full, cfg.data.val_images, cfg.loop.seed,
@@ -153,9 +154,15 @@ class ScorerTask:
         path = cache / f"start_observations_{part}_{cache_key(part, *key)}.npz"
         obs = StartObservations.load(path)
         if obs is None:
-            obs = observe_all(instances, self.templates, symmetries, desc=f"describe {part} instances", progress=progress)
+            obs = observe_all(instances, self.templates, symmetries, desc=f"describe {part} instances", progress=progress,
+                              workers=self._observe_workers())
             obs.save(path)
         return obs
+
+    def _observe_workers(self) -> int:
+        if self.cfg.data.observe_workers > 0:
+            return self.cfg.data.observe_workers
+        return max(1, (os.cpu_count() or 1) // int(os.environ.get("WORLD_SIZE", "1")))
 
     # ------------------------------------------------------------------ the TrainTask protocol
     def build_model(self, load_pretrained: bool = True) -> torch.nn.Module:

@@ -12,6 +12,7 @@ selection and template settings.
 from __future__ import annotations
 
 import hashlib
+import multiprocessing as mp
 import os
 import warnings
 from dataclasses import dataclass
@@ -93,26 +94,68 @@ def observe(instance: Any, templates: SilhouetteTemplates,
 
 
 def observe_all(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
-                desc: str = "start observations", progress: bool = True) -> StartObservations:
+                desc: str = "start observations", progress: bool = True, workers: int = 1) -> StartObservations:
     """:func:`observe` for every item of ``instances`` (a dataset of PoseSamples); ``symmetries``:
-    obj_id -> ``[S,3,3]``. Instances that cannot be observed are left out."""
+    obj_id -> ``[S,3,3]``. Instances that cannot be observed are left out. ``workers`` > 1: that many
+    forked processes share the work (the templates are rendered first, in this process, so that the
+    workers only read images and compare masks); the result is the same as with one."""
     from tqdm import tqdm
 
-    ids, crops, ious, errors = [], [], [], []
-    for i in tqdm(range(len(instances)), desc=desc, unit="instance", disable=not progress):
+    n = len(instances)
+    bar = tqdm(total=n, desc=desc, unit="instance", disable=not progress)
+    if workers > 1 and n > 1 and "fork" in mp.get_all_start_methods():
+        for obj_id in symmetries:
+            templates.templates(obj_id)  # rendered (or read) once, before the fork
+        chunks = [range(s, min(s + _CHUNK, n)) for s in range(0, n, _CHUNK)]
+        with mp.get_context("fork").Pool(workers, _worker_start, (instances, templates, symmetries)) as pool:
+            parts = []
+            for part in pool.imap(_observe_chunk, chunks):
+                parts.append(part)
+                bar.update(len(part[0]) + part[4])
+    else:
+        parts = [_observe_range(instances, templates, symmetries, range(n), bar)]
+    bar.close()
+    ids = [i for p in parts for i in p[0]]
+    if not ids:
+        k = templates.n_rotations
+        return StartObservations(torch.zeros(0, dtype=torch.long), torch.zeros((0, 3, CROP_SIZE, CROP_SIZE), dtype=torch.uint8),
+                                 torch.zeros((0, k), dtype=torch.half), torch.zeros((0, k), dtype=torch.half))
+    crops, ious, errors = (torch.from_numpy(np.stack([x for p in parts for x in p[f]])) for f in (1, 2, 3))
+    return StartObservations(torch.tensor(ids), crops, ious, errors)
+
+
+_CHUNK = 64  # instances per task of a worker
+_SHARED: tuple = ()  # (instances, templates, symmetries) of a forked worker
+
+
+def _worker_start(*shared: Any) -> None:
+    global _SHARED
+    torch.set_num_threads(1)
+    _SHARED = shared
+
+
+def _observe_chunk(index: range) -> tuple:
+    return _observe_range(*_SHARED, index, None)
+
+
+def _observe_range(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
+                   index: range, bar: Any) -> tuple[list, list, list, list, int]:
+    """(obj_ids, crops, ious, errors, number left out) of the instances ``index`` (numpy arrays: they
+    travel back from a worker without torch's shared-memory handles)."""
+    ids, crops, ious, errors, skipped = [], [], [], [], 0
+    for i in index:
         item = instances[i]
         seen = observe(item, templates, symmetries[int(item.obj_id)])
+        if bar is not None:
+            bar.update(1)
         if seen is None:
+            skipped += 1
             continue
         ids.append(int(item.obj_id))
-        crops.append(seen[0])
-        ious.append(torch.from_numpy(seen[1]).half())
-        errors.append(torch.from_numpy(seen[2]).half())
-    n = templates.n_rotations
-    if not ids:
-        return StartObservations(torch.zeros(0, dtype=torch.long), torch.zeros((0, 3, CROP_SIZE, CROP_SIZE), dtype=torch.uint8),
-                                 torch.zeros((0, n), dtype=torch.half), torch.zeros((0, n), dtype=torch.half))
-    return StartObservations(torch.tensor(ids), torch.stack(crops), torch.stack(ious), torch.stack(errors))
+        crops.append(seen[0].numpy())
+        ious.append(seen[1].astype(np.float16))
+        errors.append(seen[2].astype(np.float16))
+    return ids, crops, ious, errors, skipped
 
 
 def cache_key(*parts: Any) -> str:
