@@ -31,8 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from cosy_lite.geometry.crops import CROP_RESOLUTION
+
 PROFILES = {  # name -> (backbone, crop (h, w))
-    "effb3": ("efficientnet_b3", (240, 320)),
+    "effb3": ("efficientnet_b3", CROP_RESOLUTION),  # CosyPose's
     "demo": ("resnet18", (96, 128)),  # cosy_lite/configs/{coarse,refiner}/demo.yaml
 }
 REFERENCE_S = {1: 0.74, 5: 4.45}  # happypose CosyPose, EfficientNet-B3 240x320, this machine, no detector
@@ -66,6 +68,7 @@ def oracle(ds, rec, keep: list[int]):
 def build_predictor(ds, renderer, objects, profile: str, icp: bool, precision: str):
     from cosy_lite.geometry.symmetries import symmetry_transforms
     from cosy_lite.inference.predictor import Predictor
+    from cosy_lite.inference.settings import InferenceConfig
     from cosy_lite.model_files.loaders import PoseModel
     from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
 
@@ -75,8 +78,8 @@ def build_predictor(ds, renderer, objects, profile: str, icp: bool, precision: s
         net = build_pose_net(PoseNetConfig(backbone=backbone, crop_resolution=list(crop))).eval()
         models.append(PoseModel(net, kind, crop, objects.obj_ids))
     syms = {i: symmetry_transforms(ds.models_info[i]) for i in objects.obj_ids} if icp else None
-    return Predictor(models[0], models[1], objects, renderer, n_refiner_iterations=4, icp=icp, icp_symmetries=syms,
-                     precision=precision)
+    return Predictor(models[0], models[1], objects, renderer, config=InferenceConfig(icp=icp, precision=precision),
+                     icp_symmetries=syms)
 
 
 def time_detector(ds, rgb: np.ndarray, ckpt: Path | None, repeats: int) -> tuple[float, float, int, str]:

@@ -41,11 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_inference (image choice, oracle detections)
 
-PROFILES = {  # name -> (backbone, crop (h, w))
-    "effb3": ("efficientnet_b3", (240, 320)),
-    "demo": ("resnet18", (96, 128)),
-}
-REFERENCE_S = {1: 0.74, 5: 4.45}  # happypose CosyPose, EfficientNet-B3 240x320, this machine, no detector
+from bench_inference import PROFILES, REFERENCE_S  # noqa: E402  (the same networks and reference times)
 TARGET_FRACTION = 1 / 3  # issue 7: end to end at most a third of the reference
 RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
 

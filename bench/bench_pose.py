@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cosy_lite.inference.settings import InferenceConfig
+
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -26,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", default="test")
     ap.add_argument("--coarse", type=Path, default=None)
     ap.add_argument("--refiner", type=Path, required=True)
-    ap.add_argument("--iterations", type=int, default=4)
+    ap.add_argument("--iterations", type=int, default=InferenceConfig.n_refiner_iterations)
     ap.add_argument("--max-instances", type=int, default=400)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)

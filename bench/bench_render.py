@@ -181,12 +181,14 @@ def render_tiled(renderer, *args, **kwargs):
 
 
 def main(argv: list[str] | None = None) -> None:
+    from cosy_lite.geometry.crops import CROP_RESOLUTION
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", type=Path, default=None,
                     help="BOP models/ folder (default: data/ycbvsynth/models if present)")
     ap.add_argument("--objects", type=int, nargs="+", default=TEXTURED_YCBV)
     ap.add_argument("--batches", type=int, nargs="+", default=[8, 32])
-    ap.add_argument("--resolutions", type=parse_resolution, nargs="+", default=[(240, 320), (120, 160)])
+    ap.add_argument("--resolutions", type=parse_resolution, nargs="+", default=[CROP_RESOLUTION, (CROP_RESOLUTION[0] // 2, CROP_RESOLUTION[1] // 2)])
     ap.add_argument("--calls", type=int, default=10)
     ap.add_argument("--baselines", action="store_true")
     args = ap.parse_args(argv)

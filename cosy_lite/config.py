@@ -12,7 +12,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from cosy_lite.errors import ConfigError
+from cosy_lite.errors import ConfigError, FieldValueError
 
 T = TypeVar("T")
 
@@ -72,22 +72,32 @@ def _load_yaml(path: Path) -> DictConfig:
     return loaded
 
 
-def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides: list[str] | None = None) -> T:
-    """Build a ``cls`` instance: dataclass defaults <- YAML file <- ``["a.b=1", ...]`` overrides.
+def _merged(cfg: DictConfig, data: Any, where: str | Path) -> DictConfig:
+    """``cfg`` with the mapping ``data`` merged in; ConfigError naming ``where`` and the key."""
+    try:
+        return OmegaConf.merge(cfg, data)  # type: ignore[return-value]
+    except OmegaConfBaseException as e:
+        key, msg = _omegaconf_problem(e)
+        raise ConfigError(where, key or _failing_key(cfg, OmegaConf.create(data)), msg) from None
+
+
+def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides: list[str] | None = None,
+                layers: list[tuple[str, Any]] | None = None) -> T:
+    """Build a ``cls`` instance: dataclass defaults <- ``layers`` (``(source, mapping)`` pairs, e.g. the
+    settings a JSON file holds under one of its keys) <- YAML file <- ``["a.b=1", ...]`` overrides.
 
     Raises ConfigError naming the file or the override, the key and what was expected: a missing
     or malformed YAML file or override value (a YAML tag that would build a Python object is refused,
     nothing runs), an unknown key, a value of the wrong type, an override without ``=``.
     """
     cfg = OmegaConf.structured(cls)
+    for where, data in layers or []:
+        if not isinstance(data, dict):
+            raise ConfigError(where, "", f"expected a mapping of settings, found {type(data).__name__}")
+        cfg = _merged(cfg, data, where)
     if yaml_path is not None:
         path = Path(yaml_path)
-        data = _load_yaml(path)
-        try:
-            cfg = OmegaConf.merge(cfg, data)
-        except OmegaConfBaseException as e:
-            key, msg = _omegaconf_problem(e)
-            raise ConfigError(path, key or _failing_key(cfg, data), msg) from None
+        cfg = _merged(cfg, _load_yaml(path), path)
     for item in overrides or []:
         where = f"command-line override {item!r}"
         key, sep, _ = item.partition("=")
@@ -100,7 +110,8 @@ def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides
         except OmegaConfBaseException as e:
             full_key, msg = _omegaconf_problem(e)
             raise ConfigError(where, full_key or key, msg) from None
-    sources = " + ".join([str(yaml_path or "defaults"), *(f"override {o!r}" for o in overrides or [])])
+    sources = " + ".join([*(str(w) for w, _ in layers or []), str(yaml_path or "defaults"),
+                          *(f"override {o!r}" for o in overrides or [])])
     try:
         return OmegaConf.to_object(cfg)  # type: ignore[return-value]
     except OmegaConfBaseException as e:
@@ -109,6 +120,8 @@ def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides
     except (TypeError, ValueError) as e:  # a config dataclass's own checks (__post_init__)
         if isinstance(e, ConfigError):
             raise
+        if isinstance(e, FieldValueError):
+            raise ConfigError(sources, e.field, e.problem) from None
         raise ConfigError(sources, "", str(e)) from None
 
 

@@ -58,6 +58,15 @@ class ConfigError(CosyLiteError):
         return type(self), (self.where, self.field, self.problem)
 
 
+class FieldValueError(ValueError):
+    """A config dataclass's own check (``__post_init__``) failing on one field; :func:`cosy_lite.config.load_config`
+    reports it as a ConfigError naming the sources and this field."""
+
+    def __init__(self, field: str, problem: str):
+        self.field, self.problem = field, problem
+        super().__init__(f"{field}: {problem}")
+
+
 def describe_os_error(e: OSError) -> str:
     """``PATH: reason`` for an OSError about a file (permission denied, disk full, not a folder ...)."""
     names = [str(n) for n in (e.filename, e.filename2) if n is not None]

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.geometry.symmetries import rotation_errors_deg
 from cosy_lite.models.appearance_templates import AppearanceTemplates, square_crops, textured_obj_ids
@@ -184,7 +185,8 @@ def test_a_scorer_that_does_not_fit_the_pipeline_is_refused_by_name(tiny_synth_r
     start = "templates" if problem == "start" else "appearance"
     with pytest.raises(SetupError, match={"start": "start='appearance'", "objects": r"obj_ids \[2, 5, 8\]",
                                           "shading": "'flat' shading"}[problem]) as e:
-        Predictor.from_checkpoints(refiner=refiner, dataset=tiny_synth_root, start=start, scorer=path)
+        Predictor.from_checkpoints(refiner=refiner, dataset=tiny_synth_root, config=InferenceConfig(start=start),
+                                   scorer=path)
     assert str(path) in str(e.value)
 
 

@@ -246,8 +246,11 @@ def test_show_refuses_a_mask_over_the_pixel_limit_before_decoding_it(root: Path,
 
 def test_infer_refuses_depth_of_another_size(root: Path):
     """``infer.py --icp`` reads the depth images without check-dataset: a wrong size is named there too."""
+    from cosy_lite.inference.settings import InferenceConfig
+
     class _IcpPredictor:  # only what run_on_split touches before the poses
-        icp, detector, coarse, refiner, obj_ids = True, None, None, None, [1, 2]
+        config = InferenceConfig(icp=True)
+        detector, coarse, refiner, obj_ids = None, None, None, [1, 2]
 
     cv2.imwrite(str(scene_dir(root) / "depth" / "000000.png"), np.full((240, 320), 7000, np.uint16))
     with pytest.raises(BopFormatError, match=r"000000\.png \[size\]: 320x240 pixels, but the image .* is 640x480"):

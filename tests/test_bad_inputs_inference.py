@@ -15,6 +15,7 @@ import torch
 from bop_fixtures import forbid_decoding, scene_dir, write_huge_png, write_tiny_bop
 from torch import nn
 
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections, degenerate_boxes
 from cosy_lite.bop.results import read_results_csv
@@ -43,7 +44,8 @@ def dataset(tmp_path_factory) -> BopDataset:
 @pytest.fixture(scope="module")
 def predictor(dataset) -> Predictor:
     objects, renderer, _ = objects_and_renderer(ObjectModels(dataset.models_dir), [1, 2], 200, icp=False)
-    return Predictor(PoseModel(_Still(), "coarse", CROP, [1, 2]), None, objects, renderer, n_refiner_iterations=0)
+    return Predictor(PoseModel(_Still(), "coarse", CROP, [1, 2]), None, objects, renderer,
+                     config=InferenceConfig(n_refiner_iterations=0))
 
 
 def _det(boxes: list[list[float]], obj_ids: list[int]) -> Detections:
@@ -118,8 +120,8 @@ def test_masks_of_another_size_are_refused(dataset, predictor, tmp_path):
     mask = np.zeros((240, 320), bool)
     mask[50:90, 60:120] = True
     path = _detections_file(tmp_path / "det.json", [_entry(segmentation=mask_to_rle(mask))])
-    with_icp = Predictor(predictor.coarse, None, predictor.objects, predictor.renderer, n_refiner_iterations=0,
-                         icp=True)
+    with_icp = Predictor(predictor.coarse, None, predictor.objects, predictor.renderer,
+                         config=InferenceConfig(n_refiner_iterations=0, icp=True))
     with pytest.raises(BopFormatError, match=r"det\.json \[segmentation\.size\]: masks of scene 0 image 0 are \[240, "):
         run_on_split(with_icp, dataset, tmp_path, detections=path, progress=False)
 

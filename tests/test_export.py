@@ -19,6 +19,7 @@ from torchvision.ops import box_iou
 ort = pytest.importorskip("onnxruntime")
 onnx = pytest.importorskip("onnx")
 
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.export.manifest import Manifest, OnnxModelError  # noqa: E402
 from cosy_lite.export.onnx_export import export_detector, export_pose_net  # noqa: E402
 from cosy_lite.export.onnx_models import OnnxDetector, OnnxPoseNet  # noqa: E402
@@ -369,7 +370,7 @@ def test_onnx_detector_feeds_the_predictor(tiny_synth_root, export):
     rec = next(ds.images("test"))
     rgb = ds.load_rgb(rec)
     ref = Predictor.from_checkpoints(detector=export["detector"], coarse=export["coarse"], dataset=ds)
-    p = Predictor.from_onnx(export["models"], dataset=ds, threads=1, n_refiner_iterations=0)
+    p = Predictor.from_onnx(export["models"], dataset=ds, threads=1, config=InferenceConfig(n_refiner_iterations=0))
     assert p.backend == "onnx" and ref.backend == "torch" and p.obj_ids == OBJ_IDS
     det_ref, det = ref.detect(rgb), p.detect(rgb)
     assert torch.equal(det.obj_ids, det_ref.obj_ids) and len(det) > 0

@@ -12,6 +12,7 @@ import pytest
 import torch
 from test_inference import _detections_json, _save_pose_ckpt
 
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.results import read_results_csv
@@ -44,7 +45,7 @@ def test_6d_detection_keeps_every_detection(tiny_synth_root, ckpts, tmp_path):
     ds = BopDataset(tiny_synth_root)
     scores = _detections_json(tmp_path / "dets.json", ds, n_copies=3, time_s=0.1)
     p = Predictor.from_checkpoints(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=tiny_synth_root,
-                                   n_refiner_iterations=1)
+                                   config=InferenceConfig(n_refiner_iterations=1))
     summary = run_on_split(p, ds, tmp_path, detections=tmp_path / "dets.json", progress=False, task="6d-detection")
     assert summary.ok and summary.n_invalid == 0
     got = Counter((e.scene_id, e.im_id, e.obj_id) for e in read_results_csv(summary.csv_path))

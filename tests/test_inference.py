@@ -14,6 +14,7 @@ import pytest
 import torch
 from torch import nn
 
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.results import HEADER, read_results_csv
@@ -57,7 +58,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def predictor(tiny_synth_root, ckpts) -> Predictor:
     return Predictor.from_checkpoints(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=tiny_synth_root,
-                                      n_refiner_iterations=1)
+                                      config=InferenceConfig(n_refiner_iterations=1))
 
 
 def _rows_by_image(csv: Path):
@@ -139,11 +140,11 @@ def test_icp_run_also_writes_its_poses_before_icp(tiny_synth_root, ckpts, tmp_pa
     from cosy_lite.inference.icp import IcpConfig
 
     ds = BopDataset(tiny_synth_root)
-    kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds, n_refiner_iterations=1)
+    kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds)
     loose = IcpConfig(max_rotation_deg=180.0, max_translation=1.0, min_fitness=0.0, max_inlier_rmse=1.0)
-    run_on_split(Predictor.from_checkpoints(**kw), ds, tmp_path / "rgb", method="rgb", detections="oracle",
+    run_on_split(Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1)), ds, tmp_path / "rgb", method="rgb", detections="oracle",
                  progress=False)
-    s = run_on_split(Predictor.from_checkpoints(**kw, icp=True, icp_config=loose), ds, tmp_path / "both",
+    s = run_on_split(Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1, icp=True, icp_settings=loose)), ds, tmp_path / "both",
                      method="icp", detections="oracle", progress=False, method_before_icp="rgb")
     assert s.ok and s.icp_accepted > 0 and s.csv_before_icp == tmp_path / "both" / "rgb_tiny-test.csv"
     alone = read_results_csv(tmp_path / "rgb" / "rgb_tiny-test.csv")
@@ -240,7 +241,8 @@ def test_predict_from_models_dir_with_icp(tiny_synth_root, ckpts):
     from cosy_lite.bop.detections import oracle_detections
 
     ds = BopDataset(tiny_synth_root)
-    p = Predictor.from_checkpoints(coarse=ckpts["coarse"], models_dir=tiny_synth_root / "models", icp=True)
+    p = Predictor.from_checkpoints(coarse=ckpts["coarse"], models_dir=tiny_synth_root / "models",
+                                   config=InferenceConfig(icp=True))
     rec = next(ds.images("test"))
     det = oracle_detections(ds, rec, min_visib_fract=0.1)
     est = p.predict(ds.load_rgb(rec), rec.camera.K, ds.load_depth(rec), detections=det)
@@ -266,7 +268,7 @@ class _NanNet(nn.Module):
 def test_nan_poses_are_flagged_and_never_written(tiny_synth_root, predictor, tmp_path):
     ds = BopDataset(tiny_synth_root)
     bad = Predictor(PoseModel(_NanNet(), "coarse", tuple(CROP), OBJ_IDS), predictor.refiner, predictor.objects,
-                    predictor.renderer, n_refiner_iterations=1)
+                    predictor.renderer, config=InferenceConfig(n_refiner_iterations=1))
     with pytest.warns(RuntimeWarning, match="invalid poses"):
         summary = run_on_split(bad, ds, tmp_path, detections="oracle", progress=False)
     n_targets = sum(t.inst_count for t in ds.test_targets())

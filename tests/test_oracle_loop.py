@@ -33,6 +33,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 # torchvision before any rendering (see cosy_lite.inference.predictor)
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.detections import Detections
 from cosy_lite.inference.predictor import Predictor
 from cosy_lite.model_files.loaders import PoseModel
@@ -318,7 +319,8 @@ def _run(scene: Scene) -> tuple[Oracle, np.ndarray, np.ndarray]:
               for i, T, box in zip(scene.ids, scene.TCO_gt, scene.boxes)]
     oracle = Oracle(K, CROP, tracks)
     coarse, refiner = (PoseModel(OracleNet(oracle, role), role, CROP, scene.ids) for role in ("coarse", "refiner"))
-    predictor = Predictor(coarse, refiner, scene.objects, scene.renderer, n_refiner_iterations=N_REFINER_ITERATIONS)
+    predictor = Predictor(coarse, refiner, scene.objects, scene.renderer,
+                          config=InferenceConfig(n_refiner_iterations=N_REFINER_ITERATIONS))
     det = Detections(torch.from_numpy(scene.boxes).float(), torch.tensor(scene.ids), torch.tensor([0.9, 0.8]))
     est = predictor.predict(scene.image, K, detections=det)
     TCO = est.TCO.numpy()[[est.obj_ids.tolist().index(i) for i in scene.ids]]

@@ -129,7 +129,7 @@ def test_python_api(setup):
     from cosy_lite.inference.command_predict import predict_image
     from cosy_lite.inference.predictor import Predictor
 
-    p = Predictor.from_checkpoints(coarse=setup["coarse"], models_dir=setup["root"] / "models", n_refiner_iterations=0,
+    p = Predictor.from_checkpoints(coarse=setup["coarse"], models_dir=setup["root"] / "models",
                                    detector=setup["detector"])
     cam = io.load_camera_file(setup["dir"] / "camera.json")
     out = predict_image(p, io.load_image(setup["rec"].rgb_path), cam.K)

@@ -10,6 +10,7 @@ errors the learned refiner absorbs: those are the oracle test's, ``test_oracle_l
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -24,8 +25,8 @@ import torch
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.predictor import Predictor
 from cosy_lite.models import flow_pose_solver, render_and_compare
-from cosy_lite.model_files.reference_models import (ReferenceModelError, fill_arguments, reference_models, reference_names,
-                                         reference_root)
+from cosy_lite.inference.settings import InferenceConfig, inference_config, pretrained_config
+from cosy_lite.model_files.reference_models import ReferenceModelError, reference_models, reference_names, reference_root
 from cosy_lite.model_files.checkpoint import shard_paths
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,7 +54,8 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
                                  for f in files}
         for key in ("training_command", "machine", "training_seconds", "metrics", "config"):
             assert card[key], f"{kind}.json: field {key!r} is empty"
-    assert ref.setting("start") == "appearance" and ref.setting("n_candidates") == 1
+    settings = inference_config(ref.inference, ref.pipeline_path)
+    assert (settings.start, settings.n_candidates, settings.n_refiner_iterations) == ("appearance", 1, 4)
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
@@ -75,8 +77,8 @@ def test_unknown_or_broken_sets_name_the_problem(tmp_path):
         reference_models("../ycbvsynth")  # a name, not a path
     (tmp_path / "demo").mkdir()
     (tmp_path / "demo" / "refiner.safetensors").write_bytes(b"")
-    (tmp_path / "demo" / "pipeline.json").write_text('{"inference": {"n_candidates": "five"}}')
-    with pytest.raises(ReferenceModelError, match=r"pipeline.json: field 'inference.n_candidates' = 'five'"):
+    (tmp_path / "demo" / "pipeline.json").write_text('{"inference": ["five"]}')
+    with pytest.raises(ReferenceModelError, match=r"pipeline.json: field 'inference': expected a JSON object"):
         reference_models("demo", tmp_path)
     (tmp_path / "demo" / "pipeline.json").write_text("{")
     with pytest.raises(ReferenceModelError, match="pipeline.json: not readable JSON"):
@@ -120,24 +122,34 @@ def test_each_weights_file_is_hashed_once_per_process(tmp_path):
     assert catalog._sha256.cache_info().misses == hashed.misses  # from the cache: unchanged files
 
 
-def test_command_lines_take_the_sets_networks_and_settings_unless_given():
-    from argparse import Namespace
+def _command_line(*argv: str):
+    import argparse
 
-    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=Path("mine.pt"), start=None, candidates=None)
-    fill_arguments(args)
+    from cosy_lite.inference import command_infer
+
+    ap = argparse.ArgumentParser()
+    command_infer.add_arguments(ap)
+    return ap.parse_args(list(argv))
+
+
+def test_command_lines_take_the_sets_networks_and_settings_unless_given():
+    args = _command_line("--pretrained", NAME, "--refiner", "mine.pt")
+    config = pretrained_config(args)
     assert args.detector == reference_models(NAME).path("detector") and args.refiner == Path("mine.pt")
-    assert (args.start, args.candidates, args.coarse) == ("appearance", 1, None)  # no coarse net to load
-    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, start="coarse", candidates=None)
-    fill_arguments(args)  # the set's candidate count belongs to its templates start
-    assert (args.candidates, args.coarse) == (1, reference_models(NAME).path("coarse"))  # (None: the set has none)
-    args = Namespace(pretrained=None, detector=None, coarse=None, refiner=None, start=None, candidates=None)
-    fill_arguments(args)
-    assert (args.start, args.candidates, args.detector) == ("coarse", 1, None)  # the defaults without a set
+    assert (config.start, config.n_candidates, args.coarse) == ("appearance", 1, None)  # no coarse net to load
+    assert args.scorer == reference_models(NAME).path("scorer")
+    args = _command_line("--pretrained", NAME, "--start", "coarse")
+    config = pretrained_config(args)  # the set's candidate count belongs to its own start
+    assert (config.n_candidates, args.coarse, args.scorer) == (1, reference_models(NAME).path("coarse"), None)
+    args = _command_line()
+    config = pretrained_config(args)
+    assert (config, args.detector) == (InferenceConfig(), None)  # the defaults without a set
 
 
 def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, monkeypatch):
-    """Each field of the set's ``inference`` settings reaches the command line, and a flag given wins."""
-    from argparse import Namespace
+    """Each field of the set's ``inference`` settings reaches the pipeline, a flag or --set given wins,
+    and a bad field is an error naming pipeline.json and the field."""
+    from cosy_lite.errors import ConfigError
 
     folder = tmp_path / NAME
     folder.mkdir()
@@ -145,22 +157,27 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
         (folder / f.name).symlink_to(f)
     (folder / "pipeline.json").unlink()
     pipeline = json.loads((reference_root() / NAME / "pipeline.json").read_text())
-    pipeline["inference"] = {"start": "templates", "n_candidates": 3, "n_refiner_iterations": 2}
-    (folder / "pipeline.json").write_text(json.dumps(pipeline))
     monkeypatch.setenv("COSY_LITE_MODELS", str(tmp_path))
-    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, scorer=None, start=None,
-                     candidates=None, n_refiner_iters=None)
-    fill_arguments(args)
-    assert (args.start, args.candidates, args.n_refiner_iters) == ("templates", 3, 2)
-    assert args.scorer is None  # a scorer ranks the appearance start only
-    args = Namespace(pretrained=NAME, detector=None, coarse=None, refiner=None, start=None, candidates=None,
-                     n_refiner_iters=0)
-    fill_arguments(args)
-    assert args.n_refiner_iters == 0  # given: kept
-    args = Namespace(pretrained=None, detector=None, coarse=None, refiner=None, start=None, candidates=None,
-                     n_refiner_iters=None)
-    fill_arguments(args)
-    assert args.n_refiner_iters == 4  # no set: the default
+    changed = {"start": "templates", "n_candidates": 3, "n_refiner_iterations": 2, "min_score": 0.25,
+               "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
+               "fuse_bn": False, "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
+    assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
+    for key, value in changed.items():
+        pipeline["inference"] = {"start": "templates", key: value}
+        (folder / "pipeline.json").write_text(json.dumps(pipeline))
+        config = pretrained_config(_command_line("--pretrained", NAME)).to_dict()
+        assert config[key] == value if key != "icp_settings" else config[key].items() >= value.items(), key
+        assert config["start"] == "templates"
+    pipeline["inference"] = {"n_refiner_iterations": 2}
+    (folder / "pipeline.json").write_text(json.dumps(pipeline))
+    assert pretrained_config(_command_line("--pretrained", NAME, "--n-refiner-iters", "0")).n_refiner_iterations == 0
+    assert pretrained_config(_command_line("--pretrained", NAME, "--set", "n_refiner_iterations=1")).n_refiner_iterations == 1
+    assert pretrained_config(_command_line()).n_refiner_iterations == InferenceConfig.n_refiner_iterations
+    pipeline["inference"] = {"n_refiner_iterations": "many"}
+    (folder / "pipeline.json").write_text(json.dumps(pipeline))
+    with pytest.raises(ConfigError) as e:
+        pretrained_config(_command_line("--pretrained", NAME))
+    assert e.value.where.endswith("pipeline.json") and e.value.field == "n_refiner_iterations"
 
 
 def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
@@ -176,7 +193,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
     with pytest.raises(SetupError, match="no models of obj_ids"):  # the tiny dataset has 4 of the 21 objects
         Predictor.from_pretrained(NAME, dataset=tiny_synth_root)
     with pytest.raises(SetupError, match="coarse"):  # the set has no coarse network
-        Predictor.from_pretrained(NAME, dataset=tiny_synth_root, start="coarse", obj_ids=[1])
+        Predictor.from_pretrained(NAME, dataset=tiny_synth_root, config=InferenceConfig(start="coarse"), obj_ids=[1])
 
 
 def test_infer_with_an_unknown_set_is_one_clear_error(tmp_path):
@@ -323,7 +340,7 @@ def onnx_export(tmp_path_factory) -> Path:
 
     ref = reference_models(NAME)
     out = tmp_path_factory.mktemp("onnx")
-    export_models(out, ref.path("detector"), None, ref.path("refiner"))
+    export_models(out, ref.path("detector"), None, ref.path("refiner"), inference=ref.inference)
     return out
 
 
@@ -359,9 +376,7 @@ def test_accuracy_of_the_reference_models(test_images, templates_cache, onnx_exp
     if backend == "torch":
         predictor = Predictor.from_pretrained(NAME, **common)
     else:
-        ref = reference_models(NAME)
-        predictor = Predictor.from_onnx(onnx_export, start=ref.setting("start"), n_candidates=ref.setting("n_candidates"),
-                                        n_refiner_iterations=ref.setting("n_refiner_iterations"), **common)
+        predictor = Predictor.from_onnx(onnx_export, **common)  # the set's settings, in the manifest
     assert predictor.backend == backend
     scores = _scores(predictor, test_images, tmp_path, f"ref{backend}{detections}",
                      "oracle" if detections == "oracle" else None)

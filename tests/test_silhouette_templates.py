@@ -10,6 +10,7 @@ import pytest
 import torch
 
 # torchvision before any rendering (see cosy_lite.inference.predictor)
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.inference.predictor import Predictor  # noqa: E402
 from cosy_lite.model_files.loaders import PoseModel  # noqa: E402
 from cosy_lite.models.silhouette_templates import (SilhouetteTemplates, mask_boxes, occupancy_grids,  # noqa: E402
@@ -129,14 +130,15 @@ def _detections(scene, with_masks: bool = True):
                       torch.from_numpy(scene["masks"].copy()) if with_masks else None)
 
 
-def _predictor(scene, refiner, n_refiner_iterations: int, n_candidates: int) -> Predictor:
+def _predictor(scene, refiner, n_refiner_iterations: int, n_candidates: int, **settings) -> Predictor:
     from cosy_lite.models.object_table import ObjectTable
 
     points = torch.stack([torch.from_numpy(np.asarray(scene["meshes"][i].sample(200, seed=5))).float() for i in (1, 2)])
     objects = ObjectTable([1, 2], points, torch.eye(4).repeat(2, 1, 1, 1), torch.ones(2, 1, dtype=torch.bool),
                           torch.tensor(scene["diameters"]))
-    return Predictor(None, refiner, objects, scene["renderer"], n_refiner_iterations=n_refiner_iterations,
-                     start="templates", n_candidates=n_candidates, templates=_templates(scene))
+    config = InferenceConfig(start="templates", n_candidates=n_candidates, n_refiner_iterations=n_refiner_iterations,
+                             **settings)
+    return Predictor(None, refiner, objects, scene["renderer"], config=config, templates=_templates(scene))
 
 
 def test_predictor_starts_from_the_matched_template(scene):
@@ -225,9 +227,8 @@ def test_icp_keeps_the_candidate_the_depth_confirms(scene):
     is the true pose, where ICP of the first candidate alone cannot turn it around."""
     from cosy_lite.inference.icp import IcpConfig, refine_poses_icp
 
-    p = _predictor(scene, None, 0, 1)
     limited = IcpConfig(max_rotation_deg=15.0)
-    p.icp, p.icp_config = True, limited
+    p = _predictor(scene, None, 0, 1, icp=True, icp_settings=limited)
     depth, det = _depth(scene), _detections(scene)
     candidates = _templates(scene).match(scene["masks"], scene["ids"], K, top_k=3).TCO[:, ::-1].copy()
     boxes = [0, 2, 3]  # the cone (detection 1) turns freely about its axis
@@ -261,8 +262,8 @@ def test_icp_of_every_candidate_leaves_the_rgb_poses_alone(scene, tmp_path, back
     image, det, depth = _image(scene), _detections(scene), _depth(scene)
     agreement = {}
     for verify in (True, False):
-        p = _predictor(scene, PoseModel(net, "refiner", CROP, [1, 2], output="flow"), 1, 3)
-        p.icp, p.icp_config = True, IcpConfig(verify_candidates=verify)
+        p = _predictor(scene, PoseModel(net, "refiner", CROP, [1, 2], output="flow"), 1, 3, icp=True,
+                       icp_settings=IcpConfig(verify_candidates=verify))
         est = p.predict(image, K, depth=depth, detections=det)
         rgb_only = p.predict(image, K, detections=det)
         np.testing.assert_array_equal(est.TCO_before_icp.numpy(), rgb_only.TCO.numpy())

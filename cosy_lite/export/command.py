@@ -23,9 +23,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.export.onnx_export import describe, export_models
 
-    from cosy_lite.model_files.reference_models import fill_arguments
+    from cosy_lite.model_files.reference_models import fill_networks, reference_models
 
-    fill_arguments(args)
+    inference = None
+    if args.pretrained is not None:
+        ref = reference_models(args.pretrained)
+        fill_networks(args, ref)
+        inference = ref.inference  # the export runs as the set does
     if args.detector is None and args.coarse is None and args.refiner is None:
         print("error: give --pretrained NAME or at least one of --detector, --coarse, --refiner", file=sys.stderr)
         return 2
@@ -33,7 +37,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: --opset {args.opset}: Mask R-CNN needs >= 11", file=sys.stderr)
         return 2
     # A bad checkpoint raises CheckpointError naming it: one message, exit 2 (cosy_lite.cli).
-    manifest = export_models(args.out, args.detector, args.coarse, args.refiner, args.quantize, args.opset)
+    manifest = export_models(args.out, args.detector, args.coarse, args.refiner, args.quantize, args.opset,
+                             inference)
     for line in describe(manifest):
         print(line)
     print(f"manifest: {manifest.path}")

@@ -9,10 +9,13 @@ metadata each ``.onnx`` carries about itself.
                            "crop_resolution": [240, 320], "quantization": "none", "opset": 17,
                            "bytes": 1234, "sha256": "...", "source": "runs/.../checkpoint.pt",
                            "check": {"batch": 2, "max_abs_diff": 1e-7}},
-                "coarse.int8": {...}, "refiner": {...}, "detector": {...}}}
+                "coarse.int8": {...}, "refiner": {...}, "detector": {...}},
+     "inference": {"start": "appearance", "n_candidates": 1, "n_refiner_iterations": 4, ...}}
 
 Entry names are the role ("detector", "coarse", "refiner"), with ``.int8`` for the dynamically
-quantised copies of the pose networks. Each ``.onnx`` repeats its entry's facts in
+quantised copies of the pose networks. ``inference`` is how the networks are meant to run
+(the fields of :class:`~cosy_lite.inference.settings.InferenceConfig`, which checks them; its
+defaults when absent), so that an export is complete by itself. Each ``.onnx`` repeats its entry's facts in
 ``metadata_props`` (keys :data:`META_KEYS`), so a single file is usable without the manifest and a
 file copied from another export is caught. Every problem raises :class:`OnnxModelError` naming
 the file and the field.
@@ -138,6 +141,7 @@ class Manifest:
     root: Path
     models: dict[str, ModelEntry]
     version: str = cosy_lite.__version__
+    inference: dict[str, Any] = field(default_factory=dict)  # InferenceConfig's fields, {}: its defaults
 
     @property
     def path(self) -> Path:
@@ -145,7 +149,8 @@ class Manifest:
 
     def write(self) -> Path:
         payload = {"format": MANIFEST_FORMAT, "cosy_lite_version": self.version,
-                   "models": {name: asdict(e) for name, e in sorted(self.models.items())}}
+                   "models": {name: asdict(e) for name, e in sorted(self.models.items())},
+                   "inference": self.inference}
         text = json.dumps(payload, indent=2)
         # lists of numbers/strings on one line (obj_ids, shapes), the rest indented
         text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]",
@@ -194,7 +199,10 @@ class Manifest:
         entries = {}
         for name, raw in models.items():
             entries[name] = _entry(path, name, raw)
-        return cls(root, entries, str(payload.get("cosy_lite_version", "?")))
+        inference = payload.get("inference", {})
+        if not isinstance(inference, dict):
+            raise OnnxModelError(path, "inference", f"expected an object of settings, found {type(inference).__name__}")
+        return cls(root, entries, str(payload.get("cosy_lite_version", "?")), inference)
 
 
 def _entry(path: Path, name: str, raw: Any) -> ModelEntry:

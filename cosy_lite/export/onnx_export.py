@@ -174,10 +174,13 @@ def _pose_net_from_checkpoint(path: Path, kind: str) -> tuple[nn.Module, tuple[i
 
 
 def export_models(out_dir: str | Path, detector: str | Path | None = None, coarse: str | Path | None = None,
-                  refiner: str | Path | None = None, quantize: str | None = None, opset: int = OPSET) -> Manifest:
+                  refiner: str | Path | None = None, quantize: str | None = None, opset: int = OPSET,
+                  inference: dict[str, Any] | None = None) -> Manifest:
     """Export the given checkpoints into ``out_dir`` (``detector.onnx``, ``coarse.onnx``,
     ``refiner.onnx``; with ``quantize="int8"`` also ``coarse.int8.onnx``, ``refiner.int8.onnx``)
-    and write ``manifest.json``. At least one checkpoint is needed.
+    and write ``manifest.json`` with ``inference``, how they are meant to run (InferenceConfig's
+    fields, e.g. a reference set's; None: the defaults).
+    At least one checkpoint is needed.
 
     Raises CheckpointError naming a checkpoint that is missing, unreadable, refused (not
     weights-only) or of the wrong kind; every checkpoint is checked before a file is written.
@@ -206,7 +209,7 @@ def export_models(out_dir: str | Path, detector: str | Path | None = None, coars
             entries[f"{kind}.{quantize}"] = QUANTIZERS[quantize](out_dir / f"{kind}.onnx",
                                                                  out_dir / f"{kind}.{quantize}.onnx", entries[kind],
                                                                  config)
-    manifest = Manifest(out_dir, entries)
+    manifest = Manifest(out_dir, entries, inference=dict(inference or {}))
     manifest.write()
     return manifest
 

@@ -222,7 +222,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         raise ValueError(f"task {task!r}: expected one of {list(TASKS)}")
     out_dir = Path(out_dir)
     csv_path = out_dir / results_filename(method, dataset.name, split)
-    if method_before_icp is not None and not predictor.icp:
+    if method_before_icp is not None and not predictor.config.icp:
         raise SetupError(f"method_before_icp={method_before_icp!r}: there is no 'before ICP' without ICP")
     csv_before = None if method_before_icp is None else out_dir / results_filename(method_before_icp, dataset.name, split)
     if csv_before == csv_path:
@@ -231,7 +231,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     split_folder = split_dir.name if split_dir is not None else split
     image_keys, choose = _image_targets(dataset, task, predictor, detector_path)
     keys = image_keys[:limit_images] if limit_images is not None else image_keys
-    source = detection_source(detections, dataset, with_masks=predictor.icp or predictor.needs_masks)
+    source = detection_source(detections, dataset, with_masks=predictor.config.icp or predictor.needs_masks)
     if source is None and predictor.detector is None:
         raise SetupError("no detections: load a detector checkpoint or give detections ('oracle' or a JSON file)")
     estimates: list[PoseEstimate] = []
@@ -244,8 +244,8 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     for k, (scene_id, im_id) in enumerate(bar):
         rec = dataset.image(split_folder, scene_id, im_id)
         rgb = dataset.load_rgb(rec)
-        depth = dataset.load_depth(rec) if predictor.icp and rec.depth_path is not None else None
-        if predictor.icp and depth is None:
+        depth = dataset.load_depth(rec) if predictor.config.icp and rec.depth_path is not None else None
+        if predictor.config.icp and depth is None:
             summary.no_depth += 1
         if depth is not None and depth.shape != rgb.shape[:2]:
             raise BopFormatError(rec.depth_path, "size", f"{depth.shape[1]}x{depth.shape[0]} pixels, but the image "

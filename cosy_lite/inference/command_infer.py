@@ -19,8 +19,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
-from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
+from cosy_lite.inference.settings import add_arguments as add_setting_arguments
+from cosy_lite.inference.settings import flag_problem
+from cosy_lite.inference.starts import TEMPLATE_STARTS
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
@@ -33,33 +36,15 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
                          "of test_targets_bop24.json)")
     ap.add_argument("--pretrained", default=None, metavar="NAME",
                     help="the reference models NAME (e.g. ycbvsynth, shipped in the package) with their "
-                         "inference settings; --detector/--coarse/--refiner/--start/--candidates given as well win")
+                         "inference settings (pipeline.json); networks and settings given as well win")
     ap.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint")
     ap.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse pose checkpoint (torch backend)")
     ap.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (none: coarse only)")
     ap.add_argument("--scorer", type=Path, default=None, metavar="CKPT",
                     help="--start appearance: the coarse scorer (train.py --model scorer) that describes the detections "
                          "(none: frozen ImageNet features)")
-    ap.add_argument("--n-refiner-iters", type=int, default=None,
-                    help="refiner iterations (default: the --pretrained set's, else 4)")
-    ap.add_argument("--start", default=None, choices=STARTS,
-                    help="start poses: coarse (box pose -> the coarse network, CosyPose; the default) or templates "
-                         "(the detection mask matched against rendered silhouettes; no coarse network needed)")
     ap.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
-                    help="--start templates: keep the rendered templates in DIR between runs (default: render each run)")
-    ap.add_argument("--candidates", type=int, default=None, metavar="K",
-                    help="--start templates: the K best templates each get one refiner iteration, the most "
-                         "confident goes on (K > 1 needs a flow refiner; default 1)")
-    ap.add_argument("--min-score", type=float, default=0.0, metavar="S",
-                    help="pose only detections scoring at least S (default 0: all; for BOP19 any threshold only "
-                         "lowers AR, bench/RESULTS.md 'Detection threshold')")
-    ap.add_argument("--one-per-region", action="store_true",
-                    help="at most one detection per image region (mask IoU > 0.5, any class; the best scored)")
-    ap.add_argument("--icp", action="store_true", help="refine with the depth images (point-to-plane ICP)")
-    ap.add_argument("--icp-set", nargs="+", default=[], metavar="KEY=VALUE",
-                    help="ICP settings (cosy_lite.inference.icp.IcpConfig), e.g. max_translation=0.1 or "
-                         "verify_candidates=false (with --candidates K > 1, by default every candidate is ICP'd and "
-                         "the one whose depth agrees best with the measured depth is kept; false: the RGB choice only)")
+                    help="template starts: keep the rendered templates in DIR between runs (default: render each run)")
     ap.add_argument("--also-before-icp", default=None, metavar="METHOD",
                     help="with --icp: also write the poses before ICP as METHOD_DATASET-SPLIT.csv (the RGB-only "
                          "results of the same run, their time without ICP)")
@@ -75,11 +60,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
                     help="export folder of 'cosy-lite export' (--backend onnx): manifest.json + .onnx files")
     ap.add_argument("--threads", type=int, default=None, metavar="N",
                     help="CPU threads of the networks (torch and onnxruntime; default: their own)")
-    ap.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available; onnx: cpu)")
-    ap.add_argument("--precision", default="fp32", choices=["fp32", "bf16", "int8"],
-                    help="pose networks' arithmetic: fp32; bf16 autocast (torch, faster on CPUs with AVX512-BF16); "
-                         "int8 (onnx, exported with --quantize int8)")
+    ap.add_argument("--device", default=None, help="torch backend: cpu or cuda (default: cuda when available)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_setting_arguments(ap, "images ")
 
 
 # backend -> arguments that only it takes (anything given there for the other backend is an error)
@@ -87,19 +70,19 @@ BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector", "pretrained", "scorer
 PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
 
 
-def _backend_problem(args: argparse.Namespace) -> str | None:
-    """What is wrong with the combination of --backend and the other arguments (None: nothing)."""
+def _backend_problem(args: argparse.Namespace, config: Any) -> str | None:
+    """What is wrong with the combination of --backend, the settings and the other arguments (None: nothing)."""
     other = "onnx" if args.backend == "torch" else "torch"
     given = [f"--{k}" for k in BACKEND_ONLY[other] if getattr(args, k) is not None]
     if given:
         return f"{' '.join(given)} not used with --backend {args.backend}"
-    if args.also_before_icp is not None and not args.icp:
+    if args.also_before_icp is not None and not config.icp:
         return "--also-before-icp needs --icp"
-    if args.precision not in PRECISIONS[args.backend]:
-        return f"--precision {args.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
+    if config.precision not in PRECISIONS[args.backend]:
+        return f"precision {config.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
     if args.backend == "onnx":
         return None if args.models is not None else "--backend onnx needs --models DIR (a 'cosy-lite export' folder)"
-    if args.coarse is None and not (args.start in TEMPLATE_STARTS and args.refiner is not None):
+    if args.coarse is None and not (config.start in TEMPLATE_STARTS and args.refiner is not None):
         return "give --coarse CKPT (or --start templates with --refiner CKPT, or --backend onnx --models DIR)"
     if args.detector is None and args.detections is None:
         return "give --detector CKPT or --detections oracle|FILE.json"
@@ -109,13 +92,22 @@ def _backend_problem(args: argparse.Namespace) -> str | None:
 def _argument_problem(args: argparse.Namespace) -> str | None:
     """What is wrong with a numeric argument (None: nothing); nothing is clamped silently."""
     for name, value, least in (("--threads", args.threads, 1), ("--limit-images", args.limit_images, 1),
-                               ("--n-refiner-iters", args.n_refiner_iters, 0), ("--vis", args.vis, 0),
-                               ("--candidates", args.candidates, 1)):
+                               ("--vis", args.vis, 0)):
         if value is not None and value < least:
             return f"{name} {value}: expected an integer >= {least}"
-    if not 0.0 <= args.min_score <= 1.0:
-        return f"--min-score {args.min_score}: expected a score in [0, 1]"
     return None
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    """The inference settings of the command line: over the --pretrained set's (torch) or the export's (onnx)."""
+    from cosy_lite.inference.settings import config_from_arguments, pretrained_config
+
+    if args.backend == "onnx" and args.models is not None:
+        from cosy_lite.export.manifest import Manifest
+
+        manifest = Manifest.read(args.models)
+        return config_from_arguments(args, manifest.inference, manifest.path)
+    return pretrained_config(args, use_networks=args.backend == "torch")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,25 +117,18 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.results import results_filename
     from cosy_lite.inference.bop_run import run_on_split
-    from cosy_lite.inference.detection_filter import DetectionFilter
-    from cosy_lite.config import load_config
-    from cosy_lite.errors import ConfigError
-    from cosy_lite.inference.icp import IcpConfig
+    from cosy_lite.inference.network_runtime import default_device
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.model_files.reference_models import fill_arguments
     from cosy_lite.synth.command import dataset_folder
 
     use_egl()
-    fill_arguments(args, args.backend == "torch")
-    problem = _backend_problem(args) or _argument_problem(args)
+    problem = flag_problem(args) or _argument_problem(args)
+    config = None if problem else _settings(args)
+    problem = problem or _backend_problem(args, config)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
-    try:
-        icp_config = load_config(IcpConfig, None, args.icp_set)
-    except ConfigError as e:  # named with the flag that gave the overrides
-        raise ConfigError(f"--icp-set: {e.where}", e.field, e.problem) from None
     method = args.method.replace("_", "")
     if method != args.method:
         print(f"note: method name {args.method!r} written as {method!r} (BOP file names have one '_')")
@@ -161,25 +146,18 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = BopDataset(root)
-    detection_filter = DetectionFilter(args.min_score, args.one_per_region)
     if args.backend == "onnx":
-        predictor = Predictor.from_onnx(
-            args.models, dataset=dataset, n_refiner_iterations=args.n_refiner_iters, icp=args.icp,
-            icp_config=icp_config, threads=args.threads, precision=args.precision, detector=args.detections is None,
-            start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache,
-            detection_filter=detection_filter)
+        predictor = Predictor.from_onnx(args.models, dataset=dataset, config=config, threads=args.threads,
+                                        detector=args.detections is None, templates_cache=args.templates_cache)
         if args.detections is None and predictor.detector is None:
             raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
         detector_path = predictor.detector.path if predictor.detector is not None else None
     else:
-        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
         predictor = Predictor.from_checkpoints(
             detector=args.detector if args.detections is None else None, coarse=args.coarse,
-            refiner=args.refiner, dataset=dataset, device=device,
-            n_refiner_iterations=args.n_refiner_iters if args.refiner else 0, icp=args.icp,
-            icp_config=icp_config, precision=args.precision, start=args.start, n_candidates=args.candidates,
-            templates_cache=args.templates_cache, scorer=args.scorer, detection_filter=detection_filter)
+            refiner=args.refiner, dataset=dataset, config=config, device=default_device(args.device),
+            templates_cache=args.templates_cache, scorer=args.scorer)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
                            args.limit_images, progress=not args.no_progress, detector_path=detector_path,

@@ -24,10 +24,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from typing import Any
 
 import numpy as np
+
+from cosy_lite.inference.settings import add_arguments as add_setting_arguments
+from cosy_lite.inference.settings import flag_problem
+from cosy_lite.inference.starts import TEMPLATE_STARTS
 
 
 def obj_id_list(text: str) -> list[int]:
@@ -52,8 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", required=True, metavar="NAME_OR_DIR",
                    help="the objects' 3D models: a BOP models/ folder, a dataset folder, or a dataset name")
     p.add_argument("--pretrained", default=None, metavar="NAME",
-                   help="the shipped reference models NAME (e.g. ycbvsynth) with their inference settings (torch backend); "
-                        "--coarse/--refiner/--detector/--start/--candidates given as well win")
+                   help="the shipped reference models NAME (e.g. ycbvsynth) with their inference settings (pipeline.json; "
+                        "torch backend); networks and settings given as well win")
     p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint (torch backend)")
     p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint (torch backend)")
     p.add_argument("--scorer", type=Path, default=None, metavar="CKPT",
@@ -64,25 +67,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detections", type=Path, default=None, metavar="FILE.json",
                    help="BOP22 detections of this image instead of the detector (all its entries must be one image)")
     p.add_argument("--objects", type=obj_id_list, default=None, metavar="1,5", help="estimate only these objects")
-    p.add_argument("--icp", action="store_true", help="refine with --depth (point-to-plane ICP)")
-    p.add_argument("--n-refiner-iters", type=int, default=None,
-                    help="refiner iterations (default: the --pretrained set's, else 4)")
-    p.add_argument("--start", default=None, choices=STARTS,
-                   help="start poses: coarse network (default) or silhouette templates matched to the detection "
-                        "masks (no coarse checkpoint needed)")
-    p.add_argument("--min-score", type=float, default=0.0, metavar="S",
-                   help="pose only detections scoring at least S (default 0: all)")
-    p.add_argument("--one-per-region", action="store_true",
-                   help="at most one detection per image region (mask IoU > 0.5, any class; the best scored)")
-    p.add_argument("--candidates", type=int, default=None, metavar="K",
-                   help="--start templates: templates tried per detection, the flow refiner's most confident kept")
     p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
-                   help="--start templates: keep the rendered templates in DIR between runs")
-    p.add_argument("--device", default="cpu", help="torch backend: cpu or cuda (default cpu)")
+                   help="template starts: keep the rendered templates in DIR between runs")
+    p.add_argument("--device", default=None, help="torch backend: cpu or cuda (default: cuda when available)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the networks")
     p.add_argument("--scene-id", type=int, default=0, help="scene_id of the CSV rows (default 0)")
     p.add_argument("--im-id", type=int, default=0, help="im_id of the CSV rows (default 0)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    add_setting_arguments(p, "image --depth ")
 
 
 @dataclass
@@ -118,23 +110,36 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
                                                              args.scorer)):
         return ("give either checkpoints (--pretrained/--coarse/--refiner/--detector/--scorer) or --onnx EXPORT_DIR, "
                 "not both")
-    if args.onnx is None and args.coarse is None and not (args.start in TEMPLATE_STARTS and args.refiner is not None):
+    if args.depth_scale is not None and not (np.isfinite(args.depth_scale) and args.depth_scale > 0):
+        return f"--depth-scale {args.depth_scale}: expected a number > 0 (depth value * S = mm)"
+    for name, value, least in (("--threads", args.threads, 1), ("--scene-id", args.scene_id, 0), ("--im-id", args.im_id, 0)):
+        if value is not None and value < least:
+            return f"{name} {value}: expected an integer >= {least}"
+    return None
+
+
+def _setup_problem(args: argparse.Namespace, config: Any) -> str | None:
+    """What the networks and settings of the command line lack (None: nothing)."""
+    if args.onnx is None and args.coarse is None and not (config.start in TEMPLATE_STARTS and args.refiner is not None):
         return ("give --coarse CKPT [--refiner CKPT --detector CKPT] (torch), --start templates --refiner CKPT, "
                 "or --onnx EXPORT_DIR (onnxruntime)")
     if args.onnx is None and args.detector is None and args.detections is None:
         return "no detections: give --detector CKPT or --detections FILE.json"
-    if args.icp and args.depth is None:
+    if config.icp and args.depth is None:
         return "--icp needs --depth DEPTH (the depth image it aligns the models with)"
-    if not 0.0 <= args.min_score <= 1.0:
-        return f"--min-score {args.min_score}: expected a score in [0, 1]"
-    if args.depth_scale is not None and not (np.isfinite(args.depth_scale) and args.depth_scale > 0):
-        return f"--depth-scale {args.depth_scale}: expected a number > 0 (depth value * S = mm)"
-    for name, value, least in (("--threads", args.threads, 1), ("--n-refiner-iters", args.n_refiner_iters, 0),
-                               ("--candidates", args.candidates, 1),
-                               ("--scene-id", args.scene_id, 0), ("--im-id", args.im_id, 0)):
-        if value is not None and value < least:
-            return f"{name} {value}: expected an integer >= {least}"
     return None
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    """The inference settings of the command line: over the --pretrained set's or the export's."""
+    from cosy_lite.inference.settings import config_from_arguments, pretrained_config
+
+    if args.onnx is not None:
+        from cosy_lite.export.manifest import Manifest
+
+        manifest = Manifest.read(args.onnx)
+        return config_from_arguments(args, manifest.inference, manifest.path)
+    return pretrained_config(args)
 
 
 def _given_detections(path: Path, known: list[int], with_masks: bool = False):
@@ -193,24 +198,20 @@ def _load_inputs(args: argparse.Namespace):
     return rgb, cam.K, depth
 
 
-def _build_predictor(args: argparse.Namespace, models_dir: Path):
+def _build_predictor(args: argparse.Namespace, config: Any, models_dir: Path):
+    from cosy_lite.inference.network_runtime import default_device
     from cosy_lite.inference.predictor import Predictor, SetupError
 
-    from cosy_lite.inference.detection_filter import DetectionFilter
-
-    common = dict(models_dir=models_dir, n_refiner_iterations=args.n_refiner_iters, icp=args.icp, obj_ids=args.objects,
-                  start=args.start, n_candidates=args.candidates, templates_cache=args.templates_cache,
-                  detection_filter=DetectionFilter(args.min_score, args.one_per_region))
+    common = dict(models_dir=models_dir, config=config, obj_ids=args.objects, templates_cache=args.templates_cache)
     if args.onnx is not None:
         p = Predictor.from_onnx(args.onnx, threads=args.threads, detector=args.detections is None, **common)
         if args.detections is None and p.detector is None:
             raise SetupError(f"{args.onnx / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections FILE.json")
         return p
-    if args.refiner is None:
-        common["n_refiner_iterations"] = 0
     return Predictor.from_checkpoints(detector=args.detector if args.detections is None else None, coarse=args.coarse,
-                                      refiner=args.refiner, device=args.device, scorer=args.scorer, **common)
+                                      refiner=args.refiner, device=default_device(args.device), scorer=args.scorer,
+                                      **common)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -221,19 +222,19 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.results import PoseEstimate, estimate_to_json, write_results_csv
     from cosy_lite.inference.predictor import TIMING_KEYS, SetupError
-    from cosy_lite.model_files.reference_models import fill_arguments
     from cosy_lite.render.gl import use_egl
 
     use_egl()
-    fill_arguments(args, use_networks=args.onnx is None)
-    if problem := _argument_problem(args):
+    problem = flag_problem(args) or _argument_problem(args)
+    config = None if problem else _settings(args)
+    if problem := problem or _setup_problem(args, config):
         print(f"error: {problem}", file=sys.stderr)
         return 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     models_dir = models_folder(args.models)
     rgb, K, depth = _load_inputs(args)
-    predictor = _build_predictor(args, models_dir)
+    predictor = _build_predictor(args, config, models_dir)
     if args.objects:
         missing = sorted(set(args.objects) - set(predictor.obj_ids))
         if missing:
@@ -243,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
         from cosy_lite.bop.io import load_models_info
 
         detections = _given_detections(args.detections, sorted(load_models_info(models_dir / "models_info.json")),
-                                       with_masks=args.start in TEMPLATE_STARTS)
+                                       with_masks=config.start in TEMPLATE_STARTS)
     pred = predict_image(predictor, rgb, K, depth, detections, args.objects or predictor.obj_ids)
     est = pred.estimates
     rows = [PoseEstimate(args.scene_id, args.im_id, int(est.obj_ids[i]), float(est.scores[i]), est.TCO[i].numpy(),
@@ -251,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
     timings_ms = {k: 1000.0 * est.timings.get(k, 0.0) for k in TIMING_KEYS}
     out = {
         "rgb": str(args.rgb), "depth": None if args.depth is None else str(args.depth),
-        "camera_K": np.asarray(K).tolist(), "backend": predictor.backend, "icp": bool(args.icp),
+        "camera_K": np.asarray(K).tolist(), "backend": predictor.backend, "icp": config.icp,
         "estimates": [{**estimate_to_json(r), "box_xyxy_px": [float(v) for v in est.boxes[i].tolist()]}
                       for i, r in enumerate(rows)],
         "n_invalid_dropped": pred.n_invalid, "seconds": pred.seconds, "timings_ms": timings_ms,

@@ -103,3 +103,8 @@ def flush_denormals() -> Iterator[None]:
         yield
     finally:
         torch.set_flush_denormal(False)
+
+
+def default_device(name: str | None) -> torch.device:
+    """``name`` as a device; None: the GPU when there is one, else the CPU (the commands' default)."""
+    return torch.device(name if name is not None else ("cuda" if torch.cuda.is_available() else "cpu"))

@@ -27,6 +27,7 @@ the one render-and-compare loop of the torch pipeline.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from pathlib import Path
@@ -40,11 +41,12 @@ from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_box
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
 from cosy_lite.inference.detection_filter import DetectionFilter
-from cosy_lite.inference.icp import IcpConfig
-from cosy_lite.inference.network_runtime import PRECISIONS, Clock, TimedRenderer, flush_denormals, inference_net, timed_net
+from cosy_lite.inference.network_runtime import PRECISIONS as NETWORK_PRECISIONS
+from cosy_lite.inference.network_runtime import Clock, TimedRenderer, flush_denormals, inference_net, timed_net
 from cosy_lite.inference.object_models import (SetupError, object_models, objects_and_renderer, render_shading,
                                                start_templates)
 from cosy_lite.inference.pose_estimates import TIMING_KEYS, PoseEstimates
+from cosy_lite.inference.settings import InferenceConfig, inference_config, with_refiner
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from cosy_lite.model_files.loaders import PoseModel, load_detector, load_pose_model
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
@@ -95,90 +97,81 @@ class Predictor:
     Args:
         coarse, refiner: the pose networks (:class:`~cosy_lite.model_files.loaders.PoseModel`; torch
             modules, or onnxruntime sessions from :meth:`from_onnx`); refiner None: coarse only;
-            coarse None: only with ``start="templates"`` (the coarse network is not used there).
+            coarse None: only with a template start (the coarse network is not used there).
         objects: :class:`~cosy_lite.models.object_table.ObjectTable` of the objects to estimate
             (model points for the crops, diameters for the starting depth).
         renderer: batched renderer of the same objects (:class:`~cosy_lite.render.renderer.PyrenderRenderer`).
         detector: :class:`~cosy_lite.models.detector.Detector`, an
             :class:`~cosy_lite.export.onnx_models.OnnxDetector`, or None (detections then have to be given).
-        n_refiner_iterations: refiner iterations after the coarse one (CosyPose: 4).
-        icp: run depth ICP when a depth image is given; icp_config: its settings.
+        config: how the pipeline runs (:class:`~cosy_lite.inference.settings.InferenceConfig`: start,
+            candidates, refiner iterations, detection filter, ICP, precision, batch size ...; None: its
+            defaults). ``channels_last`` and ``fuse_bn`` act on copies of the torch networks
+            (:func:`inference_net`); the given modules are not changed.
         icp_symmetries: obj_id -> symmetry set [S,4,4] (m) for ICP (None: no symmetry handling).
-        device: where the networks run; batch_size: crops per network call.
-        channels_last: run the networks in channels-last memory format (same numbers, faster
-            convolutions on CPU); fuse_bn: fold BatchNorm into the convolutions. Both act on copies
-            of the networks (:func:`inference_net`); the given modules are not changed.
-        precision: a key of :data:`PRECISIONS`: "fp32", or "bf16" autocast of the networks'
-            forward pass (about 2x faster on CPUs with AVX512-BF16; the pose updates stay fp32).
-        start: a key of :data:`STARTS` (see the module doc); "templates" needs detection masks.
-        n_candidates: templates tried per detection (``start="templates"``; > 1 needs a flow refiner).
+        device: where the networks run.
         templates: the :class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates` to match
             (None: 2,048 per object, rendered with ``renderer`` on first use of each object).
-        detection_filter: which detections get a pose (a score threshold, one per region;
-            :class:`~cosy_lite.inference.detection_filter.DetectionFilter`; default: all).
     """
 
-    def __init__(self, coarse: PoseModel, refiner: PoseModel | None, objects: Any, renderer: Any,
-                 detector: Any = None, n_refiner_iterations: int = 4, icp: bool = False,
-                 icp_config: IcpConfig | None = None, icp_symmetries: dict[int, np.ndarray] | None = None,
-                 device: str | torch.device = "cpu", batch_size: int = 32, channels_last: bool = True,
-                 precision: str = "fp32", fuse_bn: bool = True, start: str = "coarse", n_candidates: int = 1,
-                 templates: SilhouetteTemplates | None = None, detection_filter: DetectionFilter | None = None):
-        if start not in STARTS:
-            raise ValueError(f"start must be one of {STARTS}, got {start!r}")
-        if coarse is None and start == "coarse":
+    def __init__(self, coarse: PoseModel | None, refiner: PoseModel | None, objects: Any, renderer: Any,
+                 detector: Any = None, config: InferenceConfig | None = None,
+                 icp_symmetries: dict[int, np.ndarray] | None = None, device: str | torch.device = "cpu",
+                 templates: SilhouetteTemplates | None = None):
+        config = config or InferenceConfig()
+        if coarse is None and config.start == "coarse":
             raise SetupError("start='coarse' needs a coarse model (or use start='templates')")
-        if n_candidates < 1:
-            raise ValueError(f"n_candidates must be >= 1, got {n_candidates}")
-        if n_candidates > 1 and (start not in TEMPLATE_STARTS or refiner is None or refiner.output != "flow"
-                                 or n_refiner_iterations < 1):
-            raise SetupError(f"n_candidates = {n_candidates} needs start='templates' and a flow refiner "
-                             f"(net.arch=flow) with at least one iteration: its confidence ranks the candidates")
-        if n_refiner_iterations < 0:
-            raise ValueError(f"n_refiner_iterations must be >= 0, got {n_refiner_iterations}")
-        if refiner is None and n_refiner_iterations > 0:
-            raise ValueError(f"n_refiner_iterations = {n_refiner_iterations} but no refiner model given")
+        if config.n_candidates > 1 and (refiner is None or refiner.output != "flow"):
+            raise SetupError(f"n_candidates = {config.n_candidates} needs a flow refiner (net.arch=flow): its "
+                             "confidence ranks the candidates")
+        if refiner is None and config.n_refiner_iterations > 0:
+            raise ValueError(f"n_refiner_iterations = {config.n_refiner_iterations} but no refiner model given")
+        if config.precision not in NETWORK_PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(NETWORK_PRECISIONS)} here, got {config.precision!r}")
+        self.config = config
         self.device = torch.device(device)
         self.coarse, self.refiner, self.detector = coarse, refiner, detector
         self.objects = objects.to(self.device)
         self.renderer = renderer
-        self.n_refiner_iterations = int(n_refiner_iterations)
-        self.icp, self.icp_config = bool(icp), icp_config or IcpConfig()
-        self.depth_refinement = DepthRefinement(renderer, self.icp_config, icp_symmetries)
-        self.batch_size = int(batch_size)
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
-        self.channels_last, self.precision = bool(channels_last), precision
-        self.start, self.n_candidates = start, int(n_candidates)
-        if start in TEMPLATE_STARTS and templates is None:
+        self.depth_refinement = DepthRefinement(renderer, config.icp_settings, icp_symmetries)
+        if config.start in TEMPLATE_STARTS and templates is None:
             templates = SilhouetteTemplates(renderer, self.objects.obj_ids,
                                             self.objects.diameters.detach().cpu().double().tolist())
-        if start == "appearance" and templates.appearance is None:
+        if config.start == "appearance" and templates.appearance is None:
             AppearanceTemplates(templates, renderer)  # attaches itself: templates.match ranks by appearance
         self.templates = templates
-        self.detection_filter = detection_filter or DetectionFilter()
+        self.detection_filter = DetectionFilter(config.min_score, config.one_per_region)
         if isinstance(detector, nn.Module):  # else an onnxruntime detector (OnnxDetector)
             detector.to(self.device).eval()
         self._nets: dict[str, nn.Module | Callable[[Tensor], Tensor]] = {}
         for role, m in (("coarse", coarse), ("refiner", refiner)):
             if m is not None:
-                self._nets[role] = (inference_net(m.net, self.device, self.channels_last, fuse_bn)
+                self._nets[role] = (inference_net(m.net, self.device, config.channels_last, config.fuse_bn)
                                     if isinstance(m.net, nn.Module) else m.net)
                 missing = sorted(set(self.objects.obj_ids) - set(m.obj_ids))
                 if missing:
                     raise SetupError(f"{m.describe()}: the {m.kind} model was not trained on obj_ids {missing} "
                                      f"(it knows {m.obj_ids})")
 
+    @property
+    def start(self) -> str:
+        return self.config.start
+
+    @property
+    def n_candidates(self) -> int:
+        return self.config.n_candidates
+
+    @property
+    def n_refiner_iterations(self) -> int:
+        return self.config.n_refiner_iterations
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_checkpoints(
         cls, detector: str | Path | None = None, coarse: str | Path | None = None,
         refiner: str | Path | None = None, models_dir: str | Path | None = None, dataset: Any = None,
-        device: str | torch.device = "cpu", n_refiner_iterations: int = 4, icp: bool = False,
-        icp_config: IcpConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
-        precision: str = "fp32", start: str = "coarse", n_candidates: int = 1,
+        config: InferenceConfig | None = None, device: str | torch.device = "cpu",
+        obj_ids: Sequence[int] | None = None, n_points: int | None = None,
         templates_cache: str | Path | None = None, scorer: str | Path | None = None,
-        detection_filter: DetectionFilter | None = None,
     ) -> "Predictor":
         """Load the checkpoints and the object models.
 
@@ -187,49 +180,43 @@ class Predictor:
                 detections are passed to :meth:`predict`; refiner None: coarse only.
             models_dir: a BOP ``models/`` folder, or ``dataset``: a
                 :class:`~cosy_lite.bop.dataset.BopDataset` or dataset folder (its ``models/``).
+            config: as the class (None: the defaults; without a refiner, no refiner iterations).
             obj_ids: objects to estimate (default: those of the coarse checkpoint).
             n_points: model points per object for the crop boxes (default: ObjectTable's).
-            precision: "fp32" or "bf16" (see the class); start, n_candidates: as the class
-                (``start="templates"`` needs no coarse checkpoint); templates_cache: a folder where
-                the rendered templates are kept between runs (None: rendered in every run).
+            templates_cache: a folder where the rendered templates are kept between runs (None:
+                rendered in every run).
             scorer: a coarse scorer file (``train.py --model scorer``) that describes the detections
                 of ``start="appearance"`` (None: the frozen ImageNet features on both sides).
-            detection_filter: as the class.
         Raises CheckpointError naming the file (missing, wrong kind, unreadable), SetupError when
         a checkpoint does not cover the objects.
         """
-        if coarse is None and (start not in TEMPLATE_STARTS or refiner is None):
+        config = with_refiner(config or InferenceConfig(), refiner is not None)
+        if coarse is None and (config.start not in TEMPLATE_STARTS or refiner is None):
             raise SetupError("a coarse checkpoint is needed (coarse=...), or start='templates' with a refiner")
         models = object_models(models_dir, dataset)
         coarse_model = None if coarse is None else load_pose_model(coarse, "coarse", device)
         refiner_model = None if refiner is None else load_pose_model(refiner, "refiner", device)
-        if refiner_model is None:
-            n_refiner_iterations = 0
         first = coarse_model or refiner_model
         ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
         unknown = sorted(set(ids) - set(models.obj_ids))
         if unknown:
             raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
-        objects, renderer, syms = objects_and_renderer(models, ids, n_points, icp,
+        objects, renderer, syms = objects_and_renderer(models, ids, n_points, config.icp,
                                                     render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
-        scorer_net = None if scorer is None else _load_scorer(scorer, start, ids, renderer)
-        templates = start_templates(start, models, objects, renderer, templates_cache, scorer_net)
-        return cls(coarse_model, refiner_model, objects, renderer, det, n_refiner_iterations, icp, icp_config,
-                   syms, device, precision=precision, start=start, n_candidates=n_candidates, templates=templates,
-                   detection_filter=detection_filter)
+        scorer_net = None if scorer is None else _load_scorer(scorer, config.start, ids, renderer)
+        templates = start_templates(config.start, models, objects, renderer, templates_cache, scorer_net)
+        return cls(coarse_model, refiner_model, objects, renderer, det, config, syms, device, templates)
 
     @classmethod
     def from_pretrained(
         cls, name: str, models_dir: str | Path | None = None, dataset: Any = None, detector: bool = True,
-        device: str | torch.device = "cpu", icp: bool = False, icp_config: IcpConfig | None = None,
-        obj_ids: Sequence[int] | None = None, precision: str = "fp32", start: str | None = None,
-        n_candidates: int | None = None, n_refiner_iterations: int | None = None,
-        templates_cache: str | Path | None = None, detection_filter: DetectionFilter | None = None,
+        config: InferenceConfig | None = None, device: str | torch.device = "cpu",
+        obj_ids: Sequence[int] | None = None, templates_cache: str | Path | None = None,
     ) -> "Predictor":
         """The shipped reference models ``name`` (:mod:`cosy_lite.model_files.reference_models`, e.g.
-        ``"ycbvsynth"``) with the set's inference settings (start poses, candidates, refiner
-        iterations) where ``start`` / ``n_candidates`` / ``n_refiner_iterations`` are None.
+        ``"ycbvsynth"``) run as the set's ``pipeline.json`` says (``config`` None; to change some of
+        its settings: ``inference_config(reference_models(name).inference, overrides=["icp=true"])``).
 
         detector: use the set's detector (False: detections are passed to :meth:`predict`); the
         other arguments as :meth:`from_checkpoints`. Raises ReferenceModelError for an unknown name.
@@ -237,26 +224,19 @@ class Predictor:
         from cosy_lite.model_files.reference_models import reference_models
 
         ref = reference_models(name)
-        start = start or ref.setting("start")
-        if n_candidates is None:
-            n_candidates = ref.setting("n_candidates") if start == ref.setting("start") else 1
-        if n_refiner_iterations is None:
-            n_refiner_iterations = ref.setting("n_refiner_iterations")
+        config = config or inference_config(ref.inference, ref.pipeline_path)
         return cls.from_checkpoints(
-            detector=ref.path("detector") if detector else None, coarse=ref.path("coarse") if start == "coarse" else None,
-            refiner=ref.path("refiner"), models_dir=models_dir, dataset=dataset, device=device,
-            n_refiner_iterations=n_refiner_iterations, icp=icp, icp_config=icp_config, obj_ids=obj_ids,
-            precision=precision, start=start, n_candidates=n_candidates, templates_cache=templates_cache,
-            scorer=ref.path("scorer") if start == "appearance" else None, detection_filter=detection_filter)
+            detector=ref.path("detector") if detector else None,
+            coarse=ref.path("coarse") if config.start == "coarse" else None, refiner=ref.path("refiner"),
+            models_dir=models_dir, dataset=dataset, config=config, device=device, obj_ids=obj_ids,
+            templates_cache=templates_cache, scorer=ref.path("scorer") if config.start == "appearance" else None)
 
     @classmethod
     def from_onnx(
         cls, export_dir: str | Path, models_dir: str | Path | None = None, dataset: Any = None,
-        n_refiner_iterations: int = 4, icp: bool = False, icp_config: IcpConfig | None = None,
-        obj_ids: Sequence[int] | None = None, n_points: int | None = None, threads: int | None = None,
-        precision: str = "fp32", detector: bool = True, spinning: bool = False, start: str = "coarse",
-        n_candidates: int = 1, templates_cache: str | Path | None = None,
-        detection_filter: DetectionFilter | None = None,
+        config: InferenceConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
+        threads: int | None = None, detector: bool = True, spinning: bool = False,
+        templates_cache: str | Path | None = None,
     ) -> "Predictor":
         """The pipeline with the exported networks of ``export_dir`` (``cosy-lite export --out``)
         in onnxruntime on the CPU; crops, rendering, pose updates and ICP as :meth:`from_checkpoints`
@@ -265,27 +245,33 @@ class Predictor:
         Args:
             export_dir: folder with ``manifest.json``, ``coarse.onnx`` [, ``refiner.onnx``,
                 ``detector.onnx``, ``*.int8.onnx``]; no checkpoint is needed (object ids, crop
-                sizes and the label map are in the files' metadata).
+                sizes, the label map and the inference settings are in the manifest and the files' metadata).
             models_dir / dataset: the objects' BOP ``models/`` folder, or a dataset (as
                 :meth:`from_checkpoints`).
+            config: as the class; None: the export's (its manifest's ``inference``); precision
+                "fp32", or "int8" (the dynamically quantised pose networks).
             threads: intra-op threads per onnxruntime session (None: its default); the crops and
                 pose updates run in torch (its own thread setting).
-            precision: "fp32", or "int8" (the dynamically quantised pose networks).
             detector: use ``detector.onnx`` when the export has one (False: detections are given).
             spinning: let idle onnxruntime threads spin (faster on a quiet machine, much slower on
                 a shared one).
-            start, n_candidates, templates_cache, detection_filter: as :meth:`from_checkpoints`.
+            templates_cache: as :meth:`from_checkpoints`.
         Raises OnnxModelError naming the file and field (missing / truncated / mismatched files,
         see :func:`~cosy_lite.export.onnx_models.load_onnx_models`), SetupError when the exported
         models or the object models do not cover the objects.
         """
-        from cosy_lite.export.manifest import OnnxModelError
+        from cosy_lite.export.manifest import Manifest, OnnxModelError
         from cosy_lite.export.onnx_models import load_onnx_models
 
+        manifest = Manifest.read(export_dir)
+        config = config or inference_config(manifest.inference, manifest.path)
+        precision = config.precision
+        if precision not in ("fp32", "int8"):
+            raise SetupError(f"precision {precision!r}: the ONNX networks run in fp32 or int8")
         onnx = load_onnx_models(export_dir, threads, precision, detector, spinning)
         models = object_models(models_dir, dataset)
         role = "coarse" if onnx.coarse is not None else "refiner"
-        if onnx.coarse is None and start == "coarse":
+        if onnx.coarse is None and config.start == "coarse":
             raise OnnxModelError(onnx.manifest.path, "models.coarse", "missing: the export has no coarse model "
                                  f"(it has {sorted(onnx.manifest.models)}); export one or use start='templates'")
         first_name = role + ("" if precision == "fp32" else f".{precision}")
@@ -296,13 +282,11 @@ class Predictor:
             field_ = "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids"
             raise OnnxModelError(onnx.manifest.path, field_, f"obj_ids {unknown} have no model in "
                                  f"{models.models_dir / 'models_info.json'} (it has {models.obj_ids})")
-        if onnx.refiner is None:
-            n_refiner_iterations = 0
-        objects, renderer, syms = objects_and_renderer(models, ids, n_points, icp, render_shading(onnx.coarse, onnx.refiner))
-        templates = start_templates(start, models, objects, renderer, templates_cache)
-        return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, n_refiner_iterations, icp,
-                   icp_config, syms, "cpu", precision="fp32", start=start, n_candidates=n_candidates,
-                   templates=templates, detection_filter=detection_filter)
+        config = dataclasses.replace(with_refiner(config, onnx.refiner is not None), precision="fp32")
+        objects, renderer, syms = objects_and_renderer(models, ids, n_points, config.icp,
+                                                    render_shading(onnx.coarse, onnx.refiner))
+        templates = start_templates(config.start, models, objects, renderer, templates_cache)
+        return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, config, syms, "cpu", templates)
 
     @property
     def backend(self) -> str:
@@ -399,10 +383,10 @@ class Predictor:
         with flush_denormals():
             TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock)
         icp_results, TCO_before_icp = None, None
-        if self.icp and depth is not None:
+        if self.config.icp and depth is not None:
             TCO_before_icp = TCO
             with clock("icp"):
-                if hypotheses is not None and self.icp_config.verify_candidates and self.icp_config.check_agreement:
+                if hypotheses is not None and self.config.icp_settings.verify_candidates and self.config.icp_settings.check_agreement:
                     TCO, icp_results = self.depth_refinement.refine_hypotheses(hypotheses, K, depth, det, (H, W))
                 else:
                     TCO, icp_results = self.depth_refinement.refine(TCO, K, depth, det, (H, W))
@@ -430,7 +414,7 @@ class Predictor:
         K_b = K.to(self.device, torch.float32)[None].expand(N, 3, 3).contiguous()
         points = self.objects.points[rows.to(self.device)]
         renderer = TimedRenderer(self.renderer, clock)
-        n_refiner = self.n_refiner_iterations
+        n_refiner = self.config.n_refiner_iterations
         hypotheses, pick = None, None
         if self.start == "coarse":
             TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
@@ -451,10 +435,10 @@ class Predictor:
             steps.append(("refiner", self.refiner, n_refiner))
         TCO = TCO_init
         for role, model, n_iterations in steps:
-            net = timed_net(self._nets[role], clock, self.channels_last, self.precision)
+            net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
             if n_iterations:
                 TCO = iterate_poses(net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
-                                    self.batch_size, model.output)[-1]
+                                    self.config.batch_size, model.output)[-1]
             if role == "coarse":
                 TCO_coarse = TCO
         clock.sync()
@@ -475,10 +459,10 @@ class Predictor:
         flat = candidates.reshape(N * k, 4, 4)
         owner = torch.arange(N, device=flat.device).repeat_interleave(k)
         assert self.refiner is not None
-        net = timed_net(self._nets["refiner"], clock, self.channels_last, self.precision)
+        net = timed_net(self._nets["refiner"], clock, self.config.channels_last, self.config.precision)
         refined, score = refine_and_score(net, image.expand(N * k, -1, -1, -1), K_b[owner], flat,
                                           [ids[i] for i in owner.tolist()], points[owner], renderer,
-                                          self.refiner.crop_resolution, self.batch_size)
+                                          self.refiner.crop_resolution, self.config.batch_size)
         pick = score.view(N, k).argmax(dim=1)
         at = torch.arange(N, device=flat.device)
         refined = refined.view(N, k, 4, 4)

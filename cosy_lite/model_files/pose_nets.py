@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from cosy_lite.errors import ConfigError
+from cosy_lite.geometry.crops import CROP_RESOLUTION
 from cosy_lite.models.pose_net import OUTPUT_SCALES, PoseNet
 
 POSE_ARCHS = ("early", "siamese", "flow")
@@ -29,7 +30,7 @@ class PoseNetConfig:
 
     arch: str = "early"
     backbone: str = "resnet34"  # early: a key of backbones.BACKBONES; siamese, flow: of pretrained.WEIGHTS
-    crop_resolution: list[int] = field(default_factory=lambda: [240, 320])  # (h, w), 4:3
+    crop_resolution: list[int] = field(default_factory=lambda: list(CROP_RESOLUTION))  # (h, w), 4:3
     norm: str = "batch"  # early only
     pretrained: bool = True  # siamese, flow: ImageNet weights for the trunk
     corr_radius: int = 3  # siamese, flow: cost-volume displacements in stride-8 cells

@@ -17,7 +17,8 @@ Each file is hashed once per process (cached by path, mtime and size; ~0.03 s fo
 ``ycbvsynth``).
 
 :func:`reference_models` finds a set by name (``Predictor.from_pretrained(NAME)``, ``infer.py
---pretrained NAME``); :func:`publish` writes one network of a set from a training run.
+--pretrained NAME``; :func:`fill_networks` completes a command line); :func:`publish` writes one network of
+a set from a training run.
 """
 
 from __future__ import annotations
@@ -35,8 +36,6 @@ from cosy_lite.errors import CosyLiteError
 
 KINDS = ("detector", "coarse", "refiner", "scorer")
 PIPELINE_FILE = "pipeline.json"
-# infer.py settings of a set when its pipeline.json does not say otherwise
-DEFAULT_PIPELINE = {"start": "coarse", "n_candidates": 1, "n_refiner_iterations": 4}
 _NAME = re.compile(r"^[A-Za-z0-9]+$")  # a BOP dataset name: no '_' or '-'
 
 
@@ -113,9 +112,16 @@ class ReferenceModels:
         """The weights file of ``kind`` (:data:`KINDS`), None if the set has none."""
         return self.weights.get(kind)
 
-    def setting(self, key: str) -> Any:
-        """An inference setting of :data:`DEFAULT_PIPELINE` as the set's ``pipeline.json`` gives it."""
-        return self.pipeline.get("inference", {}).get(key, DEFAULT_PIPELINE[key])
+    @property
+    def pipeline_path(self) -> Path:
+        return self.folder / PIPELINE_FILE
+
+    @property
+    def inference(self) -> dict[str, Any]:
+        """How the set is meant to run: the ``inference`` of its ``pipeline.json``, the differences
+        from the defaults of :class:`~cosy_lite.inference.settings.InferenceConfig` (which reads and
+        checks them: :func:`~cosy_lite.inference.settings.inference_config`)."""
+        return dict(self.pipeline.get("inference", {}))
 
 
 def reference_names(root: Path | None = None) -> list[str]:
@@ -210,10 +216,8 @@ def reference_models(name: str, root: Path | None = None) -> ReferenceModels:
     if not _NAME.match(name) or not folder.is_dir():
         raise ReferenceModelError(f"no reference models named {name!r} (available: {reference_names(root)})")
     pipeline = _read_json(folder / PIPELINE_FILE) if (folder / PIPELINE_FILE).is_file() else {}
-    for key, value in pipeline.get("inference", {}).items():
-        if key not in DEFAULT_PIPELINE or type(value) is not type(DEFAULT_PIPELINE[key]):
-            raise ReferenceModelError(f"{folder / PIPELINE_FILE}: field 'inference.{key}' = {value!r} is not one of "
-                                      f"{ {k: type(v).__name__ for k, v in DEFAULT_PIPELINE.items()} }")
+    if not isinstance(pipeline.get("inference", {}), dict):
+        raise ReferenceModelError(f"{folder / PIPELINE_FILE}: field 'inference': expected a JSON object of settings")
     cards, weights = {}, {}
     for kind in KINDS:
         card_path = folder / f"{kind}.json"
@@ -228,32 +232,12 @@ def reference_models(name: str, root: Path | None = None) -> ReferenceModels:
     return ReferenceModels(name, folder, weights, cards, pipeline)
 
 
-def fill_arguments(args: Any, use_networks: bool = True) -> None:
-    """Complete a command line's namespace from its ``--pretrained NAME`` (``args.pretrained``): where
-    the namespace has them and they are None, ``args.start`` / ``args.candidates`` /
-    ``args.n_refiner_iters`` (the set's settings, else the defaults of :data:`DEFAULT_PIPELINE`);
-    then the set's networks where ``args.detector`` / ``.refiner`` are None, ``.coarse`` when the
-    poses start from it and
-    ``.scorer`` when they start from the appearance templates
-    (``use_networks`` False: networks left as they are, for a backend that does not take them).
-    Raises ReferenceModelError for an unknown name."""
-    settings = {"start": DEFAULT_PIPELINE["start"], "candidates": DEFAULT_PIPELINE["n_candidates"],
-                "n_refiner_iters": DEFAULT_PIPELINE["n_refiner_iterations"]}
-    ref = reference_models(args.pretrained) if getattr(args, "pretrained", None) is not None and use_networks else None
-    if ref is not None:
-        settings = {"start": ref.setting("start"), "candidates": ref.setting("n_candidates"),
-                    "n_refiner_iters": ref.setting("n_refiner_iterations")}
-        if getattr(args, "start", None) not in (None, settings["start"]):
-            settings["candidates"] = 1  # the set's candidate count belongs to its own start
-    for key, value in settings.items():
-        if hasattr(args, key) and getattr(args, key) is None:
-            setattr(args, key, value)
-    if ref is not None:
-        start = getattr(args, "start", None)
-        needed = {"coarse": start in (None, "coarse"), "scorer": start in (None, "appearance")}  # (export: all)
-        for kind in KINDS:
-            if hasattr(args, kind) and getattr(args, kind) is None and needed.get(kind, True):
-                setattr(args, kind, ref.path(kind))
+def fill_networks(args: Any, ref: ReferenceModels, kinds: tuple[str, ...] = KINDS) -> None:
+    """Set ``args.KIND`` (a command line's namespace) to the set's network of each of ``kinds``
+    where the namespace has that attribute and it is None (a network given on the command line wins)."""
+    for kind in kinds:
+        if hasattr(args, kind) and getattr(args, kind) is None:
+            setattr(args, kind, ref.path(kind))
 
 
 def _same_weights(path: Path | None, ckpt: Any) -> bool:

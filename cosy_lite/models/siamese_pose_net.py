@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from cosy_lite.geometry.crops import CROP_RESOLUTION
 from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD, N_OUT, output_scale_vector
 
 TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16
@@ -86,7 +87,7 @@ class SiamesePoseNet(nn.Module):
 
     def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
                  corr_radius: int = 3, width: int = 128, output_scale: tuple[float, float, float] = (0.25, 0.04, 0.06),
-                 crop_resolution: tuple[int, int] = (240, 320), flat_channels: int = 0):
+                 crop_resolution: tuple[int, int] = CROP_RESOLUTION, flat_channels: int = 0):
         super().__init__()
         from cosy_lite.models.pretrained import lite_features
 

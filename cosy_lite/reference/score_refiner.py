@@ -15,12 +15,15 @@ import json
 from pathlib import Path
 from typing import Any
 
+from cosy_lite.inference.settings import InferenceConfig
+
 NOISE_ROT_DEG = 15.0
 NOISE_TRANS_M = (0.01, 0.01, 0.05)
 CHUNK = 32  # instances whose full images are held in memory at once
 
 
-def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256, n_iterations: int = 4,
+def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
+                  n_iterations: int = InferenceConfig.n_refiner_iterations,
                   split: str = "test", seed: int = 12345, progress: bool = True, from_gt: bool = False) -> dict[str, Any]:
     """``{"instances", "split", "start": {...}, "iter1": {...}, ...}``: each a dict of
     ``rot_err_deg_median``, ``trans_err_cm_median``, ``adds_recall_0.1d``, ``mssd_recall_0.1d``.
@@ -84,7 +87,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under $COSY_LITE_DATA or ./data) or path")
     p.add_argument("--split", default="test")
     p.add_argument("-n", type=int, default=256, help="instances (default 256)")
-    p.add_argument("--iterations", type=int, default=4)
+    p.add_argument("--iterations", type=int, default=InferenceConfig.n_refiner_iterations)
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--out", type=Path, default=None, metavar="JSON", help="also write the numbers here")
     p.add_argument("--from-gt", action="store_true", help="start at the GT poses instead of GT + noise (the drift)")

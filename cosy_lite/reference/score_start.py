@@ -21,10 +21,11 @@ from typing import Any
 import numpy as np
 
 from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG, rotation_errors_deg
+from cosy_lite.inference.settings import InferenceConfig
 
 
 
-def score_start(dataset_root: str | Path, start: str = "appearance", n_candidates: int = 1,
+def score_start(dataset_root: str | Path, start: str = "appearance", n_candidates: int = InferenceConfig.n_candidates,
                 refiner: str | Path | None = None, split: str = "test", min_visib: float = 0.5, n: int | None = None,
                 templates_cache: str | Path | None = None, seed: int = 0, progress: bool = True,
                 scorer: str | Path | None = None) -> dict[str, Any]:
@@ -110,7 +111,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", default="ycbvsynth", help="dataset name (folder under $COSY_LITE_DATA or ./data) or path")
     p.add_argument("--split", default="test")
     p.add_argument("--start", choices=TEMPLATE_STARTS, default="appearance")
-    p.add_argument("--candidates", type=int, default=1, help="> 1: the most confident of the K best (needs --refiner)")
+    p.add_argument("--candidates", type=int, default=InferenceConfig.n_candidates,
+                   help="> 1: the most confident of the K best (needs --refiner)")
     p.add_argument("--refiner", default=None, metavar="FILE_OR_NAME",
                    help="refiner checkpoint / .safetensors or reference set name (for --candidates > 1)")
     p.add_argument("--scorer", default=None, metavar="FILE_OR_NAME",

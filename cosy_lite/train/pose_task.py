@@ -26,6 +26,7 @@ from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
 from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.crops import crop_images
 from cosy_lite.geometry.rotations import rotation_angle_deg
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.model_files.pose_nets import PRETRAINED_ARCHS, PoseNetConfig, build_pose_net, check_net_config
 from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
 from cosy_lite.models.losses import closest_symmetric_pose, disentangled_loss
@@ -71,7 +72,7 @@ class PoseTrainConfig:
     data: PoseDataConfig = field(default_factory=PoseDataConfig)
     noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
     augmentation: AugmentationConfig = field(default_factory=AugmentationConfig)
-    val_iterations: int = 4  # refiner: 4 (trained with 1); coarse: 1
+    val_iterations: int = InferenceConfig.n_refiner_iterations  # refiner: as inference runs it (trained with 1); coarse: 1
     # flow refiner (net.arch=flow): loss = flow cross-entropy + flow_pose_weight x the disentangled
     # pose loss of the pose solved from the flow (through the differentiable solver)
     flow_pose_weight: float = 10.0

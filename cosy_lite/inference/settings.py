@@ -1,0 +1,162 @@
+"""How the pose pipeline runs: one typed configuration, its defaults written here once.
+
+:class:`InferenceConfig` is read by :class:`~cosy_lite.inference.predictor.Predictor`, written into a
+reference set's ``pipeline.json`` (key ``inference``) and into an export's ``manifest.json``, and
+built by ``cosy-lite infer`` / ``predict`` from, in order (later wins): these defaults, the
+reference set's or the export's settings, ``--settings FILE`` (YAML or JSON), the command's flags
+(``--start``, ``--candidates`` ...) and ``--set KEY=VALUE`` overrides. Every problem is a
+:class:`~cosy_lite.errors.ConfigError` naming the file (or flag) and the field.
+
+No torch here: the command-line parsers read it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from cosy_lite.errors import FieldValueError
+from cosy_lite.inference.icp import IcpConfig
+from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
+
+PRECISIONS = ("fp32", "bf16", "int8")  # bf16: torch autocast; int8: the quantised ONNX pose networks
+
+
+@dataclass
+class InferenceConfig:
+    """Everything that decides the poses of an image, apart from the networks and the objects."""
+
+    start: str = "coarse"  # a key of STARTS (cosy_lite.inference.starts)
+    n_candidates: int = 1  # template starts: the best templates each get one refiner iteration, the most confident goes on
+    n_refiner_iterations: int = 4  # after the start (CosyPose: trained with 1, run with 4)
+    min_score: float = 0.0  # pose only detections scoring at least this (BOP19: any threshold lowers AR)
+    one_per_region: bool = False  # at most one detection per image region (mask IoU > 0.5, any class)
+    icp: bool = False  # refine with the depth image (point-to-plane ICP) when one is given
+    icp_settings: IcpConfig = field(default_factory=IcpConfig)
+    precision: str = "fp32"  # a key of PRECISIONS
+    batch_size: int = 32  # crops per network call
+    channels_last: bool = True  # torch networks in channels-last memory (same numbers, faster on CPU)
+    fuse_bn: bool = True  # BatchNorm folded into the convolutions (torch)
+
+    def __post_init__(self) -> None:
+        checks = (("start", self.start in STARTS, f"one of {list(STARTS)}"),
+                  ("n_candidates", self.n_candidates >= 1, "an integer >= 1"),
+                  ("n_refiner_iterations", self.n_refiner_iterations >= 0, "an integer >= 0"),
+                  ("min_score", 0.0 <= self.min_score <= 1.0, "a score in [0, 1]"),
+                  ("precision", self.precision in PRECISIONS, f"one of {list(PRECISIONS)}"),
+                  ("batch_size", self.batch_size >= 1, "an integer >= 1"))
+        for name, ok, expected in checks:
+            if not ok:
+                raise FieldValueError(name, f"{getattr(self, name)!r}: expected {expected}")
+        if self.n_candidates > 1 and self.start not in TEMPLATE_STARTS:
+            raise FieldValueError("n_candidates", f"{self.n_candidates} needs a template start ({list(TEMPLATE_STARTS)}), "
+                             f"not start = {self.start!r}")
+        if self.n_candidates > 1 and self.n_refiner_iterations < 1:
+            raise FieldValueError("n_candidates", f"{self.n_candidates} needs n_refiner_iterations >= 1: the refiner's "
+                             "confidence after one iteration ranks the candidates")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def inference_config(base: Mapping[str, Any] | None = None, base_source: str | Path = "",
+                     settings_file: str | Path | None = None, overrides: Sequence[str] = ()) -> InferenceConfig:
+    """The defaults <- ``base`` (settings read from ``base_source``, e.g. the ``inference`` of a
+    ``pipeline.json``) <- ``settings_file`` (YAML/JSON) <- ``overrides`` ("key=value"). Raises
+    ConfigError naming the source and the field."""
+    from cosy_lite.config import load_config
+
+    layers = [] if base is None else [(str(base_source or "settings"), base)]
+    return load_config(InferenceConfig, settings_file, list(overrides), layers=layers)
+
+
+def with_refiner(config: InferenceConfig, has_refiner: bool) -> InferenceConfig:
+    """``config`` for a pipeline without a refiner network: no refiner iterations, one candidate."""
+    if has_refiner:
+        return config
+    return dataclasses.replace(config, n_refiner_iterations=0, n_candidates=1)
+
+
+# --------------------------------------------------------------------------- command lines
+def add_arguments(ap: Any, what: str = "") -> None:
+    """The inference flags shared by ``infer`` and ``predict`` (defaults: None, i.e. the settings'
+    value; :func:`config_from_arguments` resolves them)."""
+    ap.add_argument("--settings", type=Path, default=None, metavar="FILE",
+                    help="inference settings, YAML or JSON (cosy_lite.inference.settings.InferenceConfig); default: the "
+                         "--pretrained set's or the export's, else the defaults")
+    ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="set_overrides",
+                    help="change settings, e.g. n_refiner_iterations=2 icp_settings.max_translation=0.1 batch_size=8")
+    ap.add_argument("--start", default=None, choices=STARTS,
+                    help="start poses: coarse (box pose -> the coarse network, CosyPose), templates (the detection "
+                         "mask matched against rendered silhouettes) or appearance (those templates ranked by the "
+                         "image inside the mask as well)")
+    ap.add_argument("--candidates", type=int, default=None, metavar="K",
+                    help="template starts: the K best templates each get one refiner iteration, the most confident "
+                         "goes on (K > 1 needs a flow refiner)")
+    ap.add_argument("--n-refiner-iters", type=int, default=None, metavar="N", help="refiner iterations")
+    ap.add_argument("--min-score", type=float, default=None, metavar="S",
+                    help="pose only detections scoring at least S (BOP19: any threshold only lowers AR, "
+                         "bench/RESULTS.md 'Detection threshold')")
+    ap.add_argument("--one-per-region", action="store_true", default=None,
+                    help="at most one detection per image region (mask IoU > 0.5, any class; the best scored)")
+    ap.add_argument("--icp", action="store_true", default=None, help=f"refine with the depth {what}(point-to-plane ICP)")
+    ap.add_argument("--icp-set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="ICP settings (cosy_lite.inference.icp.IcpConfig), e.g. max_translation=0.1 or "
+                         "verify_candidates=false; the same as --set icp_settings.KEY=VALUE")
+    ap.add_argument("--precision", default=None, choices=PRECISIONS,
+                    help="pose networks' arithmetic: fp32; bf16 autocast (torch, faster on CPUs with AVX512-BF16); "
+                         "int8 (onnx, exported with --quantize int8)")
+
+
+# flag (namespace attribute) -> InferenceConfig key
+FLAG_KEYS = {"start": "start", "candidates": "n_candidates", "n_refiner_iters": "n_refiner_iterations",
+             "min_score": "min_score", "one_per_region": "one_per_region", "icp": "icp", "precision": "precision"}
+
+
+def flag_problem(args: Any) -> str | None:
+    """What is wrong with a settings flag's value alone, named as the user typed it (None: nothing;
+    the settings themselves check every field again, :class:`InferenceConfig`)."""
+    for attr, key in FLAG_KEYS.items():
+        value = getattr(args, attr, None)
+        if value is None:
+            continue
+        try:
+            InferenceConfig(**{key: value, **({"start": "templates"} if key == "n_candidates" else {})})
+        except FieldValueError as e:
+            return f"--{attr.replace('_', '-')} {value}: {e.problem.split(': ', 1)[-1]}"
+    return None
+
+
+def config_from_arguments(args: Any, base: Mapping[str, Any] | None = None,
+                          base_source: str | Path = "") -> InferenceConfig:
+    """The settings of a command line (:func:`add_arguments`) on top of ``base`` (the settings of a
+    reference set's ``pipeline.json`` or an export's manifest, read from ``base_source``). A
+    ``--start`` other than the base's resets the candidates to 1 unless ``--candidates`` is given:
+    a set's candidate count belongs to its own start."""
+    flags = [f"{key}={getattr(args, attr)}" for attr, key in FLAG_KEYS.items() if getattr(args, attr, None) is not None]
+    if (base and getattr(args, "candidates", None) is None and getattr(args, "start", None) is not None
+            and args.start != base.get("start", InferenceConfig.start)):
+        flags.append("n_candidates=1")
+    overrides = [*flags, *(f"icp_settings.{kv}" for kv in getattr(args, "icp_set", [])),
+                 *getattr(args, "set_overrides", [])]
+    return inference_config(base, base_source, getattr(args, "settings", None), overrides)
+
+
+def pretrained_config(args: Any, use_networks: bool = True) -> InferenceConfig:
+    """:func:`config_from_arguments` over the settings of ``--pretrained NAME`` (``args.pretrained``;
+    none: the defaults), and the set's networks filled in where ``args`` leaves them None: the
+    detector and refiner, the coarse network when the poses start from it, the scorer when they start
+    from the appearance templates (``use_networks`` False: the set is not used, for a backend that
+    does not take its networks). Raises ReferenceModelError for an unknown name, ConfigError naming
+    ``pipeline.json`` or the flag and the field for a bad setting."""
+    from cosy_lite.model_files.reference_models import KINDS, fill_networks, reference_models
+
+    if getattr(args, "pretrained", None) is None or not use_networks:
+        return config_from_arguments(args)
+    ref = reference_models(args.pretrained)
+    config = config_from_arguments(args, ref.inference, ref.pipeline_path)
+    unused = {"coarse": config.start != "coarse", "scorer": config.start != "appearance"}
+    fill_networks(args, ref, tuple(k for k in KINDS if not unused.get(k, False)))
+    return config

@@ -1,0 +1,119 @@
+"""One typed inference configuration: its defaults written once, its errors naming file and field, and
+an export that runs as its reference set by itself."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from cosy_lite.errors import ConfigError
+from cosy_lite.inference.settings import InferenceConfig, inference_config
+
+REPO = Path(__file__).resolve().parents[1]
+SETTINGS = REPO / "cosy_lite" / "inference" / "settings.py"
+CROPS = REPO / "cosy_lite" / "geometry" / "crops.py"
+# names under which the package takes a refiner iteration count or a candidate count
+SETTING_NAMES = {"n_refiner_iterations", "n_refiner_iters", "n_iterations", "val_iterations", "n_candidates",
+                 "candidates", "iterations"}
+
+
+def _literal_defaults(path: Path) -> list[tuple[str, int, object]]:
+    """(name, line, value) of every literal number given as the default of a setting-like name in
+    ``path``: function parameters, annotated class fields, ``add_argument("--NAME", default=...)``."""
+    tree = ast.parse(path.read_text())
+    found = []
+
+    def literal(node):
+        return node.value if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) \
+            and not isinstance(node.value, bool) else None
+
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            args = node.args
+            positional = args.posonlyargs + args.args
+            for a, d in zip(positional[len(positional) - len(args.defaults):], args.defaults):
+                found.append((a.arg, d.lineno, literal(d)))
+            for a, d in zip(args.kwonlyargs, args.kw_defaults):
+                if d is not None:
+                    found.append((a.arg, d.lineno, literal(d)))
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and node.value is not None:
+            found.append((node.target.id, node.lineno, literal(node.value)))
+        elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument" and node.args:
+            flag = node.args[0].value if isinstance(node.args[0], ast.Constant) else ""
+            for kw in node.keywords:
+                if kw.arg == "default" and isinstance(flag, str):
+                    found.append((flag.lstrip("-").replace("-", "_"), kw.value.lineno, literal(kw.value)))
+    return [(n, line, v) for n, line, v in found if v is not None and n in SETTING_NAMES]
+
+
+def _crop_literals(path: Path) -> list[int]:
+    """Lines of ``path`` holding the crop size (240, 320) as a tuple or list literal in code."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, (ast.Tuple, ast.List)) and len(node.elts) == 2 and all(
+                isinstance(e, ast.Constant) for e in node.elts) and [e.value for e in node.elts] == [240, 320]:
+            lines.append(node.lineno)
+    return lines
+
+
+def test_every_inference_default_is_written_once():
+    files = sorted((REPO / "cosy_lite").rglob("*.py")) + sorted((REPO / "bench").glob("*.py")) + [
+        REPO / "infer.py", REPO / "train.py"]
+    duplicated = [f"{p.relative_to(REPO)}:{line} {name} = {value}" for p in files if p != SETTINGS
+                  for name, line, value in _literal_defaults(p)]
+    assert not duplicated, "inference defaults live in InferenceConfig only:\n" + "\n".join(duplicated)
+    crops = [f"{p.relative_to(REPO)}:{line}" for p in files if p != CROPS for line in _crop_literals(p)]
+    assert not crops, "the crop size is CROP_RESOLUTION (geometry/crops.py) only:\n" + "\n".join(crops)
+    # and the check finds them where they are
+    assert {n for n, _, _ in _literal_defaults(SETTINGS)} >= {"n_refiner_iterations", "n_candidates"}
+    assert _crop_literals(CROPS)
+
+
+def test_the_check_finds_a_duplicated_default(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f(x, n_refiner_iterations=4):\n    pass\n\nclass C:\n    n_candidates: int = 5\n\n"
+                   "def g(ap):\n    ap.add_argument('--candidates', type=int, default=3)\n    crop = (240, 320)\n")
+    assert sorted(n for n, _, _ in _literal_defaults(bad)) == ["candidates", "n_candidates", "n_refiner_iterations"]
+    assert _crop_literals(bad) == [9]
+
+
+def test_settings_read_from_a_file_with_overrides_and_errors_naming_file_and_field(tmp_path):
+    path = tmp_path / "settings.yaml"
+    path.write_text("start: appearance\nn_candidates: 3\nicp_settings: {max_translation: 0.05}\n")
+    cfg = inference_config({"icp": True}, "pipeline.json", path, ["n_refiner_iterations=2"])
+    assert (cfg.start, cfg.n_candidates, cfg.n_refiner_iterations, cfg.icp) == ("appearance", 3, 2, True)
+    assert cfg.icp_settings.max_translation == 0.05 and cfg.icp_settings.min_points == 50
+    assert inference_config(cfg.to_dict()) == cfg  # written and read back: the same
+    for base, overrides, where, field in [({"start": "sideways"}, [], "pipeline.json", "start"),
+                                          ({"n_candidates": 2}, [], "pipeline.json", "n_candidates"),
+                                          ({}, ["batch_size=0"], "batch_size=0", "batch_size"),
+                                          ({"min_score": "high"}, [], "pipeline.json", "min_score"),
+                                          ({"bogus": 1}, [], "pipeline.json", "bogus")]:
+        with pytest.raises(ConfigError) as e:
+            inference_config(base, "pipeline.json", None, overrides)
+        assert where in e.value.where and e.value.field == field, (base, overrides, str(e.value))
+    path.write_text("start: !!python/object/apply:os.system ['echo hacked']\n")
+    with pytest.raises(ConfigError, match="YAML tag refused"):
+        inference_config(None, "", path)
+
+
+def test_an_export_carries_its_settings_and_a_bad_one_is_named(tmp_path):
+    from cosy_lite.export.manifest import Manifest, ModelEntry
+
+    entry = ModelEntry(file="refiner.onnx", kind="refiner", obj_ids=[1], input_name="images",
+                       input_shape=["batch", 6, 240, 320], crop_resolution=[240, 320])
+    settings = dataclasses.replace(InferenceConfig(), start="appearance", n_refiner_iterations=3).to_dict()
+    Manifest(tmp_path, {"refiner": entry}, inference=settings).write()
+    manifest = Manifest.read(tmp_path)
+    assert inference_config(manifest.inference, manifest.path) == InferenceConfig(**{
+        **settings, "icp_settings": InferenceConfig().icp_settings})
+    payload = json.loads(manifest.path.read_text())
+    payload["inference"]["n_refiner_iterations"] = -1
+    manifest.path.write_text(json.dumps(payload))
+    with pytest.raises(ConfigError) as e:
+        inference_config(Manifest.read(tmp_path).inference, manifest.path)
+    assert e.value.where.startswith(str(manifest.path)) and e.value.field == "n_refiner_iterations"
