@@ -45,6 +45,9 @@ from pathlib import Path
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 
 MODELS = ("detector", "coarse", "refiner")
+# --train, template starts: the templates tried per detection by the from-scratch refiner (its confidence
+# picks one; the reference sets say their own in pipeline.json)
+TRAIN_CANDIDATES = 5
 METRICS = {"AR": "ar", "AR_VSD": "ar_vsd", "AR_MSSD": "ar_mssd", "AR_MSPD": "ar_mspd"}  # column -> scores.json key
 MSSD_RECALL = "MSSD recall 0.1 d"
 # short runs: model -> (held-out key of its log, what it is), validated before and after training
@@ -98,9 +101,8 @@ class DemoConfig:
     # the short runs that show each network learning (reference-model mode)
     short_minutes: dict[str, float] = field(default_factory=lambda: {"detector": 1.0, "coarse": 1.0, "refiner": 1.0})
     short_train_images: int = 100  # train_pbr images generated for them when the dataset is absent
-    n_refiner_iters: int = 4
-    start: str = "templates"  # cosy-lite infer --start: "templates" (no coarse network) or "coarse"
-    n_candidates: int = 5  # cosy-lite infer --candidates (start="templates")
+    start: str = "templates"  # --train: cosy-lite infer --start: "templates" (no coarse network) or "coarse"
+    n_candidates: int | None = None  # --train, template starts: cosy-lite infer --candidates (None: TRAIN_CANDIDATES)
     vis: int = 4
     threads: int = 2
     quick: bool = False  # every step at toy size (QUICK, QUICK_GENERATE, QUICK_OVERRIDES), a smoke test
@@ -129,19 +131,24 @@ def model_args(cfg: DemoConfig) -> list[str]:
     if cfg.reference is not None:
         return ["--pretrained", cfg.reference, "--templates-cache", str(cfg.runs / "templates")]
     start = (["--coarse", str(cfg.runs / "coarse" / "checkpoint.pt")] if cfg.start == "coarse"
-             else ["--start", cfg.start, "--candidates", str(cfg.n_candidates),
+             else ["--start", cfg.start, "--candidates", str(train_candidates(cfg)),
                    "--templates-cache", str(cfg.runs / "templates")])
-    return start + ["--refiner", str(cfg.runs / "refiner" / "checkpoint.pt"),
-                    "--n-refiner-iters", str(cfg.n_refiner_iters)]
+    return start + ["--refiner", str(cfg.runs / "refiner" / "checkpoint.pt")]
+
+
+def train_candidates(cfg: DemoConfig) -> int:
+    return cfg.n_candidates if cfg.n_candidates is not None else TRAIN_CANDIDATES
 
 
 def inference_start(cfg: DemoConfig) -> str:
     """Where the inference runs start their poses: the reference set's ``pipeline.json``, or ``cfg.start``."""
     if cfg.reference is None:
         return cfg.start
+    from cosy_lite.inference.settings import inference_config
     from cosy_lite.model_files.reference_models import reference_models
 
-    return str(reference_models(cfg.reference).setting("start"))
+    ref = reference_models(cfg.reference)
+    return inference_config(ref.inference, ref.pipeline_path).start
 
 
 def infer_runs(cfg: DemoConfig) -> list[InferRun]:
@@ -149,7 +156,7 @@ def infer_runs(cfg: DemoConfig) -> list[InferRun]:
     if cfg.reference is not None:
         start, masks = "templates + refiner", "GT boxes + masks"
     else:
-        start = ("coarse" if cfg.start == "coarse" else f"templates (top {cfg.n_candidates})") + " + refiner"
+        start = ("coarse" if cfg.start == "coarse" else f"templates (top {train_candidates(cfg)})") + " + refiner"
         masks = "GT boxes + masks" if cfg.start in TEMPLATE_STARTS else "GT boxes"
     # each ICP run also writes its poses before ICP: the RGB-only results at no extra cost
     return [
@@ -330,7 +337,7 @@ def short_training(cfg: DemoConfig, root: Path) -> dict[str, dict]:
                       [runs / f"{m}.log" for m in pose])
         for m in pose:
             _mark_done(cfg, m, short=True)
-    from cosy_lite.train.loop import read_log
+    from cosy_lite.train.run_log import read_log
 
     logs = {}
     for m in MODELS:
@@ -500,8 +507,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", choices=STARTS, default=DemoConfig.start,
                    help="--train: start poses from silhouette templates (default; the coarse network is not trained) "
                         "or the trained coarse network (CosyPose)")
-    p.add_argument("--candidates", type=int, default=DemoConfig.n_candidates, metavar="K",
-                   help=f"--train --start templates: templates tried per detection (default {DemoConfig.n_candidates})")
+    p.add_argument("--candidates", type=int, default=None, metavar="K",
+                   help=f"--train --start templates: templates tried per detection (default {TRAIN_CANDIDATES})")
     p.add_argument("--quick", action="store_true",
                    help=f"every step at toy size, a smoke test of the installation (a few minutes; the numbers mean "
                         f"nothing): 2 test images and {QUICK['short_train_images']} training images generated, 2 training "

@@ -274,7 +274,7 @@ class GpuSampler:
 
 def training_summary(log_path: Path) -> dict:
     """Steps, items (crops or images) per second after the first interval, last losses and validation."""
-    from cosy_lite.train.loop import read_log
+    from cosy_lite.train.run_log import read_log
 
     if not log_path.is_file():
         return {"error": f"{log_path} missing"}
@@ -296,7 +296,7 @@ def plot_curves(logs: dict[str, Path], png: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cosy_lite.train.loop import read_log
+    from cosy_lite.train.run_log import read_log
 
     fig, axes = plt.subplots(1, len(logs), figsize=(5 * len(logs), 3.8))
     for ax, (model, path) in zip(axes, logs.items()):

@@ -49,7 +49,7 @@ def test_with_templates_the_detector_and_the_refiner_train_on_both_cores(tmp_pat
     demo.infer_and_eval(cfg, tmp_path / "missing")  # no scores: every step runs
     infer = [c for c in recorded if _is(c, "infer")][0]
     assert "--coarse" not in infer and infer[infer.index("--start") + 1] == "templates"
-    assert infer[infer.index("--candidates") + 1] == str(cfg.n_candidates)
+    assert infer[infer.index("--candidates") + 1] == str(demo.TRAIN_CANDIDATES)
 
 
 def test_training_runs_each_model_once_with_its_budget_and_resumes_unfinished_runs(tmp_path, recorded):
@@ -144,7 +144,7 @@ def test_infer_and_eval_runs_the_missing_steps_with_the_demo_checkpoints(tmp_pat
     first = infers[0]
     assert first[first.index("--coarse") + 1] == str(cfg.runs / "coarse" / "checkpoint.pt")
     assert first[first.index("--detector") + 1] == str(cfg.runs / "detector" / "checkpoint.pt")
-    assert first[first.index("--n-refiner-iters") + 1] == "4"
+    assert "--n-refiner-iters" not in first  # the inference default (InferenceConfig), written once
 
 
 def test_the_two_inference_runs_go_side_by_side_on_one_core_each(tmp_path, monkeypatch):

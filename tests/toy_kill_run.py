@@ -40,9 +40,10 @@ def _install_kill(when: str, at: int, out: Path) -> None:
     import torch
 
     import cosy_lite.train.loop as loop_module
+    import cosy_lite.train.run_log as log_module
 
     if when == "log":
-        class _Json:  # the loop's json module, except that one record is half written
+        class _Json:  # the run log's json module, except that one record is half written
             loads, JSONDecodeError = json.loads, json.JSONDecodeError
 
             @staticmethod
@@ -56,7 +57,7 @@ def _install_kill(when: str, at: int, out: Path) -> None:
                     _die()
                 return text
 
-        loop_module.json = _Json  # type: ignore[assignment]
+        log_module.json = _Json  # type: ignore[assignment]
         return
     real_save, real_replace = torch.save, os.replace
     saving: dict[str, int] = {}

@@ -1,9 +1,10 @@
 """The one training loop of cosy_lite (detector, coarse and refiner all run through it).
 
 A model-specific :class:`TrainTask` says how to build the model and the data and how to compute
-the losses of a batch; this loop owns everything else: device and DDP, Adam with warm-up and step
-decay, gradient clipping, mixed precision on GPU, the tqdm bar (losses, items/s), JSON-lines logs,
-the loss-curve PNG, validation every N steps, atomic checkpoints and exact resume.
+the losses of a batch; this loop owns everything else: device and DDP, Adam and its learning-rate
+schedule (:mod:`~cosy_lite.train.schedule`), gradient clipping, mixed precision on GPU, the tqdm bar
+(losses, items/s), the log (:mod:`~cosy_lite.train.run_log`), validation every N steps, atomic
+checkpoints and exact resume (:mod:`~cosy_lite.train.run_state`).
 
 Run folder (``out_dir``): ``checkpoint.pt`` (latest; also the final model), ``log.jsonl`` (one
 record per log interval / validation), ``loss.png``, ``config.yaml``.
@@ -18,9 +19,7 @@ log interval and the elapsed time, so the resumed log reads as one uninterrupted
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -31,20 +30,15 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from cosy_lite.errors import ConfigError, CosyLiteError
-from cosy_lite.model_files.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, remove_stale_temporaries,
-                                        save_checkpoint)
+from cosy_lite.model_files.checkpoint import CheckpointError, remove_stale_temporaries
 from cosy_lite.train.distributed import DistInfo, all_reduce_mean, barrier, init_distributed, shutdown_distributed
+from cosy_lite.train.run_log import RunLog, plot_losses, truncate_log
+from cosy_lite.train.run_state import RunState, resume_run, save_run
 from cosy_lite.train.sampler import StepBatchSampler
-from cosy_lite.train.schedule import SCHEDULES, OptimConfig, budget_factor, build_optimizer
+from cosy_lite.train.schedule import SCHEDULES, OptimConfig, build_optimizer, learning_rate, set_learning_rate
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "log.jsonl"
-# Config keys allowed to differ when resuming (how long to train, not what to train).
-RESUMABLE_CHANGES = ("loop.steps", "loop.max_minutes", "loop.val_every", "loop.log_every",
-                     "loop.checkpoint_every", "loop.num_workers", "loop.device", "loop.val_at_start")
-# Settings added after checkpoints were written, with the value that behaves as before they existed: a
-# checkpoint whose config lacks one resumes when the new config has that value.
-ADDED_SETTINGS = {"optim.schedule": "step", "optim.cosine_floor": 0.05}
 
 
 @dataclass
@@ -98,23 +92,6 @@ class TrainSummary:
     checkpoint: Path | None = None
 
 
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        out.update(_flatten(v, key + ".") if isinstance(v, dict) else {key: v})
-    return out
-
-
-def _check_same_config(path: Path, old: dict[str, Any], new: dict[str, Any]) -> None:
-    a, b = _flatten(old), _flatten(new)
-    a.update({k: v for k, v in ADDED_SETTINGS.items() if k not in a})
-    diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
-    if diff:
-        details = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in diff[:8])
-        raise CheckpointError(path, f"cannot resume with a different config ({details})")
-
-
 class DivergedError(CosyLiteError, FloatingPointError):
     """Training produced a non-finite loss (learning rate too high, broken data ...)."""
 
@@ -157,73 +134,40 @@ def check_train_config(loop: LoopConfig, optim: OptimConfig, where: str | Path =
          "a factor in [0, 1]", optim.cosine_floor)
 
 
-def read_log(log_path: Path) -> list[dict[str, Any]]:
-    """The records of ``log.jsonl``; a half-written last line (a killed run) is left out.
+def _start_run(task: TrainTask, model: torch.nn.Module, optimizer: torch.optim.Optimizer, ckpt_path: Path,
+               loop: LoopConfig, config: dict[str, Any], resume: bool, init: str | Path | None,
+               world_size: int) -> RunState:
+    """The run resumed from its checkpoint, started from ``init`` weights, or afresh."""
+    if ckpt_path.is_file():
+        if not resume:
+            raise CheckpointError(ckpt_path, "a checkpoint already exists; pass --resume to continue it or choose "
+                                  "another output folder")
+        return resume_run(ckpt_path, task.kind, model, optimizer, config, loop.steps, loop.batch_size * world_size,
+                          init)
+    if init is not None:
+        from cosy_lite.train.init_weights import load_initial_weights
 
-    CheckpointError naming the file and line for a broken line elsewhere or a record without an
-    integer ``step``.
-    """
-    if not log_path.is_file():
-        return []
-    text = log_path.read_text(encoding="utf-8", errors="replace")
-    lines = text.split("\n")
-    records = []
-    for n, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError as e:
-            if n == len(lines):  # no newline after it: the write was cut short
-                continue
-            raise CheckpointError(log_path, f"line {n}: not a JSON record ({e.msg}); "
-                                  "expected one JSON object per line") from None
-        step = record.get("step") if isinstance(record, dict) else None
-        if isinstance(step, bool) or not isinstance(step, int):
-            raise CheckpointError(log_path, f"line {n}: record without an integer 'step': {line[:80]!r}")
-        records.append(record)
-    return records
+        return RunState(init_record=load_initial_weights(model, init, task.kind), weights_source=f"init: {init}")
+    return RunState()
 
 
-def _truncate_log(log_path: Path, step: int) -> None:
-    """Keep the log records up to ``step`` (the checkpoint's; 0: none): later ones will be produced again."""
-    if not log_path.is_file():
-        return
-    keep = [r for r in read_log(log_path) if r["step"] <= step]
-    tmp = log_path.with_name(f".{log_path.name}.tmp")
-    tmp.write_text("".join(json.dumps(r) + "\n" for r in keep))
-    os.replace(tmp, log_path)
+def _validate(task: TrainTask, model: torch.nn.Module, device: torch.device) -> dict[str, float]:
+    """The task's held-out metrics, the model in eval mode meanwhile."""
+    model.eval()
+    with torch.no_grad():
+        metrics = task.validate(model, device)
+    model.train()
+    return metrics
 
 
-def plot_losses(log_path: Path, png_path: Path) -> None:
-    """Loss curves (every ``loss/*`` term, log scale) and validation metrics from ``log.jsonl``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    records = read_log(log_path)
-    train = [r for r in records if r.get("type") == "train"]
-    val = [r for r in records if r.get("type") == "val"]
-    fig, axes = plt.subplots(1, 2 if val else 1, figsize=(12 if val else 7, 4), squeeze=False)
-    ax = axes[0, 0]
-    for key in sorted({k for r in train for k in r if k.startswith("loss/")}):
-        ax.plot([r["step"] for r in train if key in r], [r[key] for r in train if key in r], label=key[5:])
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_title("training losses")
-    if ax.get_lines():
-        ax.legend()
-    if val:
-        ax = axes[0, 1]
-        for key in sorted({k for r in val for k in r if k.startswith("val/")}):
-            ax.plot([r["step"] for r in val], [r.get(key, math.nan) for r in val], marker="o", label=key[4:])
-        ax.set_xlabel("step")
-        ax.set_title("validation")
-        ax.legend()
-    fig.tight_layout()
-    fig.savefig(png_path, dpi=90)
-    plt.close(fig)
+def _budget_done(run: RunState, step: int, loop: LoopConfig, dist: DistInfo) -> tuple[bool, float]:
+    """(out of time, the fraction of the run's budget done) after ``step`` steps; the processes agree
+    on both (their clocks differ slightly)."""
+    elapsed = run.elapsed()
+    out_of_time = loop.max_minutes > 0 and elapsed > 60 * loop.max_minutes
+    done = elapsed / (60 * loop.max_minutes) if loop.max_minutes > 0 else step / loop.steps
+    out_of_time_mean, done = all_reduce_mean(torch.tensor([float(out_of_time), done]), dist).tolist()
+    return out_of_time_mean > 0, done
 
 
 def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | Path, config: dict[str, Any],
@@ -240,181 +184,96 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     check_train_config(loop, optim)
     out_dir = Path(out_dir)
     ckpt_path, log_path = out_dir / CHECKPOINT_NAME, out_dir / LOG_NAME
-    dist_info = init_distributed(loop.device)
-    device = dist_info.device
-    if dist_info.is_main:
+    dist = init_distributed(loop.device)
+    device = dist.device
+    if dist.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         if stale := remove_stale_temporaries(ckpt_path):
             print(f"removed {len(stale)} temporary checkpoint file(s) of an interrupted run: {[p.name for p in stale]}")
-
     torch.set_flush_denormal(True)  # CPU: denormal floats (tiny Adam moments, activations) are very slow
     torch.manual_seed(loop.seed)  # the initial weights are a function of the seed (same on every rank)
-    # resumed or --init: every weight is overwritten below, so no pretrained (ImageNet) file is read
+    # resumed or --init: every weight is overwritten, so no pretrained (ImageNet) file is read
     model = task.build_model(load_pretrained=init is None and not ckpt_path.is_file()).to(device)
-    optimizer, scheduler = build_optimizer(model.parameters(), optim)
-    start_step = 0
-    interval: dict[str, Any] = {"sums": {}, "n": 0}  # loss sums of the log interval in progress
-    elapsed_before = 0.0  # seconds trained before this process (resumed runs)
-    items_before = 0  # training items (crops, images) of the run before this process
-    init_record: dict[str, Any] | None = None
-    # what the weights started from, when the task did not read it itself (resume, --init)
-    weights_source: str | None = None
-    if ckpt_path.is_file():
-        if not resume:
-            raise CheckpointError(ckpt_path, "a checkpoint already exists; pass --resume to continue it or choose another output folder")
-        ckpt = load_checkpoint(ckpt_path, kind=task.kind)
-        _check_same_config(ckpt_path, ckpt.config, config)
-        init_record = ckpt.meta.get("init")
-        weights_source = ckpt.meta.get("initialised_from")
-        if init is not None and (init_record or {}).get("path") != str(init):
-            print(f"{ckpt_path}: resuming; --init {init} is not used (the run started from "
-                  f"{(init_record or {}).get('path', 'its fresh initialisation')})")
-        if ckpt.step > loop.steps:
-            raise ConfigError(ckpt_path, "loop.steps", f"{loop.steps}: the checkpoint is at step {ckpt.step} already; "
-                              f"expected loop.steps >= {ckpt.step} to resume")
-        missing = [k for k in ("optimizer", "scheduler") if k not in ckpt.train_state]
-        if missing:
-            raise CheckpointError(ckpt_path, f"field 'train_state' lacks {missing}: not a checkpoint of a run to resume")
-        try:
-            model.load_state_dict(ckpt.model)
-            optimizer.load_state_dict(ckpt.train_state["optimizer"])
-            scheduler.load_state_dict(ckpt.train_state["scheduler"])
-        except (RuntimeError, ValueError, KeyError, TypeError) as e:
-            raise CheckpointError(ckpt_path, f"does not fit this model/optimiser ({type(e).__name__}: "
-                                  f"{str(e).splitlines()[0]})") from None
-        start_step = ckpt.step
-        interval = ckpt.train_state.get("log_interval", interval)
-        elapsed_before = float(ckpt.train_state.get("elapsed_s", 0.0))
-        items_before = int(ckpt.train_state.get("items_trained", start_step * loop.batch_size * dist_info.world_size))
-    elif init is not None:
-        from cosy_lite.train.init_weights import load_initial_weights
+    optimizer = build_optimizer(model.parameters(), optim)
+    run = _start_run(task, model, optimizer, ckpt_path, loop, config, resume, init, dist.world_size)
+    log = RunLog(log_path, dist)
+    log.restore(run.log_interval)
+    if dist.is_main:  # records after the checkpoint (all, without one) come again
+        truncate_log(log_path, run.step)
+    barrier(dist)
 
-        init_record = load_initial_weights(model, init, task.kind)
-        weights_source = f"init: {init}"
-    if dist_info.is_main:  # records after the checkpoint (all, without one) come again
-        _truncate_log(log_path, start_step)
-    barrier(dist_info)
-
-    ddp_model: torch.nn.Module | None = None
-    if dist_info.distributed:
-        ddp_model = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None)
+    ddp_model = (torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda"
+                                                           else None) if dist.distributed else None)
     train_model = ddp_model if ddp_model is not None else model
-
     dataset = task.train_dataset()
     if len(dataset) == 0:
         raise CosyLiteError(f"{out_dir}: the {task.kind} training set is empty (no training items in the dataset)")
-    sampler = StepBatchSampler(len(dataset), loop.batch_size, loop.seed, start_step, loop.steps,
-                               dist_info.rank, dist_info.world_size)
-    loader = DataLoader(dataset, batch_sampler=sampler, num_workers=loop.num_workers, collate_fn=task.collate,
-                        persistent_workers=False, pin_memory=device.type == "cuda")
-    use_amp = loop.amp and device.type == "cuda"
-    autocast = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if use_amp else nullcontext
+    sampler = StepBatchSampler(len(dataset), loop.batch_size, loop.seed, run.step, loop.steps, dist.rank,
+                               dist.world_size)
+    loader: Any = DataLoader(dataset, batch_sampler=sampler, num_workers=loop.num_workers, collate_fn=task.collate,
+                             persistent_workers=False, pin_memory=device.type == "cuda")
+    autocast = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if loop.amp and device.type == "cuda"
+                else nullcontext)
 
-    def checkpoint(step: int) -> None:
-        if not dist_info.is_main:
-            return
-        items_trained = items_before + total_items
-        before = (init_record or {}).get("items_seen") or 0
-        task_meta = task.checkpoint_meta()
-        if "initialised_from" in task_meta and task_meta["initialised_from"] is None:
-            task_meta["initialised_from"] = weights_source
-        meta = {**task_meta, "items_seen": items_trained + before, "world_size": dist_info.world_size,
-                **({"init": init_record} if init_record else {})}
-        save_checkpoint(ckpt_path, Checkpoint(
-            kind=task.kind, model=model.state_dict(), config=config, step=step,
-            train_state={"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                         "log_interval": {"sums": dict(sums), "n": n_sum},
-                         "elapsed_s": elapsed_before + time.perf_counter() - t_start,
-                         "items_trained": items_trained},
-            meta=meta))
-        if log_path.is_file():
-            plot_losses(log_path, out_dir / "loss.png")
+    def checkpoint() -> None:
+        if dist.is_main:
+            save_run(ckpt_path, task.kind, model, optimizer, config, run, task.checkpoint_meta(), log.state(),
+                     dist.world_size)
+            if log_path.is_file():
+                plot_losses(log_path, out_dir / "loss.png")
 
-    def log(record: dict[str, Any]) -> None:
-        if dist_info.is_main:
-            with open(log_path, "a") as f:
-                f.write(json.dumps(record) + "\n")
-
-    if loop.val_at_start and loop.val_every > 0 and start_step == 0 and dist_info.is_main:
-        train_model.eval()
-        with torch.no_grad():
-            first_val = task.validate(model, device)
-        log({"type": "val", "step": 0, **{f"val/{k}": v for k, v in first_val.items()}})
-        print("step 0: " + ", ".join(f"{k} {v:.4g}" for k, v in first_val.items()), flush=True)
-    bar = tqdm(total=loop.steps, initial=start_step, desc=f"train {task.kind}", unit="step",
-               disable=None if (progress and dist_info.is_main) else True, dynamic_ncols=True)  # None: only on a terminal
-    t_start = time.perf_counter()
-    t_interval, items_interval = time.perf_counter(), 0
-    sums: dict[str, float] = dict(interval["sums"])
-    n_sum = int(interval["n"])
-    step = start_step
     last_losses: dict[str, float] = {}
     last_val: dict[str, float] = {}
-    total_items = 0
+    if loop.val_at_start and loop.val_every > 0 and run.step == 0 and dist.is_main:
+        first_val = _validate(task, train_model, device)
+        log.validation(0, first_val)
+        print("step 0: " + ", ".join(f"{k} {v:.4g}" for k, v in first_val.items()), flush=True)
+    bar = tqdm(total=loop.steps, initial=run.step, desc=f"train {task.kind}", unit="step",
+               disable=None if (progress and dist.is_main) else True, dynamic_ncols=True)  # None: only on a terminal
+    run.t_start = t_interval = time.perf_counter()
     train_model.train()
-    if loop.max_minutes > 0 and elapsed_before >= 60 * loop.max_minutes:
-        bar.write(f"{ckpt_path}: the run has trained {elapsed_before / 60:.1f} min of its loop.max_minutes="
+    if loop.max_minutes > 0 and run.elapsed_before >= 60 * loop.max_minutes:
+        bar.write(f"{ckpt_path}: the run has trained {run.elapsed_before / 60:.1f} min of its loop.max_minutes="
                   f"{loop.max_minutes:g} already; nothing to do (raise loop.max_minutes to train on)")
         loader = []
     for batch in loader:
-        torch.manual_seed(loop.seed * 1_000_003 + step * dist_info.world_size + dist_info.rank)
+        torch.manual_seed(loop.seed * 1_000_003 + run.step * dist.world_size + dist.rank)
         with autocast():
-            losses = task.compute_losses(train_model, batch, step, device)
-        total = losses["total"]
-        if not torch.isfinite(total):
-            raise DivergedError(f"{out_dir}: step {step}: non-finite loss {({k: float(v.detach()) for k, v in losses.items()})}; "
+            losses = task.compute_losses(train_model, batch, run.step, device)
+        if not torch.isfinite(losses["total"]):
+            raise DivergedError(f"{out_dir}: step {run.step}: non-finite loss "
+                                f"{({k: float(v.detach()) for k, v in losses.items()})}; "
                                 "expected finite losses (lower optim.lr, check the data)")
         optimizer.zero_grad(set_to_none=True)
-        total.backward()
+        losses["total"].backward()
         if optim.clip_grad_norm > 0:
             torch.nn.utils.clip_grad_norm_(model.parameters(), optim.clip_grad_norm)
+        set_learning_rate(optimizer, run.step, run.done, optim)
         optimizer.step()
-        scheduler.step()
-        elapsed = elapsed_before + time.perf_counter() - t_start
-        out_of_time = loop.max_minutes > 0 and elapsed > 60 * loop.max_minutes
-        done = elapsed / (60 * loop.max_minutes) if loop.max_minutes > 0 else (step + 1) / loop.steps
-        # ranks agree on stopping and on the learning rate (their clocks differ slightly)
-        out_of_time, done = all_reduce_mean(torch.tensor([float(out_of_time), done]), dist_info).tolist()
-        stop = out_of_time > 0
-        for group in optimizer.param_groups:  # LambdaLR sets the lr from scratch at each of its steps
-            group["lr"] *= budget_factor(done, optim)
-        step += 1
-        items_interval += loop.batch_size * dist_info.world_size
-        total_items += loop.batch_size * dist_info.world_size
-        values = all_reduce_mean(torch.stack([v.detach().float() for v in losses.values()]), dist_info)
-        for k, v in zip(losses, values.tolist()):
-            sums[k] = sums.get(k, 0.0) + v
-        n_sum += 1
+        run.step += 1
+        stop, run.done = _budget_done(run, run.step, loop, dist)
+        run.items += loop.batch_size * dist.world_size
+        log.add(losses, loop.batch_size * dist.world_size)
         bar.update(1)
-
-        if step % loop.log_every == 0 or step == loop.steps:
-            dt = time.perf_counter() - t_interval
-            last_losses = {k: v / n_sum for k, v in sums.items()}
-            rate = items_interval / max(dt, 1e-9)
-            log({"type": "train", "step": step, "lr": optimizer.param_groups[0]["lr"], "items_per_s": rate,
-                 "elapsed_s": elapsed_before + time.perf_counter() - t_start,
-                 **{f"loss/{k}": v for k, v in last_losses.items()}})
+        if run.step % loop.log_every == 0 or run.step == loop.steps:
+            next_lr = learning_rate(run.step, run.done, optim)  # the rate of the coming step
+            last_losses, rate = log.close_interval(run.step, next_lr, run.elapsed(), time.perf_counter() - t_interval)
             bar.set_postfix(loss=f"{last_losses['total']:.4g}", items_s=f"{rate:.1f}")
-            sums, n_sum, items_interval, t_interval = {}, 0, 0, time.perf_counter()
-        if loop.val_every > 0 and (step % loop.val_every == 0 or step == loop.steps or stop):
-            if dist_info.is_main:
-                model.eval()
-                with torch.no_grad():
-                    last_val = task.validate(model, device)
-                model.train()
-                log({"type": "val", "step": step, **{f"val/{k}": v for k, v in last_val.items()}})
-                bar.write(f"step {step}: " + ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
-        if step % loop.checkpoint_every == 0 or step == loop.steps or stop:
-            checkpoint(step)
+            t_interval = time.perf_counter()
+        if loop.val_every > 0 and (run.step % loop.val_every == 0 or run.step == loop.steps or stop) and dist.is_main:
+            last_val = _validate(task, model, device)
+            log.validation(run.step, last_val)
+            bar.write(f"step {run.step}: " + ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
+        if run.step % loop.checkpoint_every == 0 or run.step == loop.steps or stop:
+            checkpoint()
         if stop:
-            bar.write(f"stopping at step {step}: time budget of {loop.max_minutes} min reached (checkpoint saved)")
+            bar.write(f"stopping at step {run.step}: time budget of {loop.max_minutes} min reached (checkpoint saved)")
             break
     bar.close()
-    seconds = time.perf_counter() - t_start
+    seconds = time.perf_counter() - run.t_start
     del train_model, ddp_model, loader  # before destroy_process_group (gloo aborts otherwise)
-    barrier(dist_info)
-    shutdown_distributed(dist_info)
-    return TrainSummary(steps_done=step, seconds=seconds, items_per_s=total_items / max(seconds, 1e-9),
+    barrier(dist)
+    shutdown_distributed(dist)
+    return TrainSummary(steps_done=run.step, seconds=seconds, items_per_s=run.items / max(seconds, 1e-9),
                         last_losses=last_losses, last_val=last_val,
                         checkpoint=ckpt_path if ckpt_path.is_file() else None)

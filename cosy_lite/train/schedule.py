@@ -51,8 +51,24 @@ def budget_factor(done_fraction: float, cfg: OptimConfig) -> float:
     return cfg.cosine_floor + (1.0 - cfg.cosine_floor) * 0.5 * (1.0 + math.cos(math.pi * f))
 
 
-def build_optimizer(params, cfg: OptimConfig) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
-    """Adam over ``params`` and the LambdaLR implementing :func:`lr_factor` (stepped once per step)."""
-    optimizer = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, cfg))
-    return optimizer, scheduler
+def learning_rate(step: int, done_fraction: float, cfg: OptimConfig) -> float:
+    """The learning rate of optimisation step ``step`` (0-based) when ``done_fraction`` of the run's
+    budget is behind it: ``cfg.lr`` x warm-up and step decay x the cosine over the budget."""
+    return cfg.lr * lr_factor(step, cfg) * budget_factor(done_fraction, cfg)
+
+
+def set_learning_rate(optimizer: torch.optim.Optimizer, step: int, done_fraction: float | None,
+                      cfg: OptimConfig) -> None:
+    """The one place the learning rate is set, before each optimisation step. ``done_fraction`` None
+    (the first step resumed from a checkpoint that did not record it): the rate the checkpoint's
+    optimiser holds stands."""
+    if done_fraction is None:
+        return
+    lr = learning_rate(step, done_fraction, cfg)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
+def build_optimizer(params, cfg: OptimConfig) -> torch.optim.Optimizer:
+    """Adam over ``params`` (its rate set by :func:`set_learning_rate` before each step)."""
+    return torch.optim.Adam(params, lr=cfg.lr * lr_factor(0, cfg), weight_decay=cfg.weight_decay, foreach=True)
