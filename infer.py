@@ -7,7 +7,7 @@ predictor from checkpoints, the shipped reference models or ONNX exports, the ru
         --coarse runs/ycbvsynth-coarse/checkpoint.pt --refiner runs/ycbvsynth-refiner/checkpoint.pt \\
         --out results/ --vis 8
     python infer.py --dataset ycbvsynth --pretrained ycbvsynth --out results/   # the shipped reference models
-    python infer.py --dataset ycbvsynth --backend onnx --models onnx/ --threads 2 --out results/
+    python infer.py --dataset ycbvsynth --onnx onnx/ --threads 2 --out results/
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Benchmark of the batched renderer: renders/s of B crops per call, RGB+depth and depth-only.
 
-Usage: python bench/bench_render.py [--models DIR] [--objects 2 3 4 5 8 9] [--batches 8 32]
+Usage: python bench/bench_render.py [--meshes DIR] [--objects 2 3 4 5 8 9] [--batches 8 32]
        [--resolutions 240x320 120x160] [--calls 10] [--baselines]
 
 Models: ``DIR`` (a BOP ``models/`` folder, default ``data/ycbvsynth/models`` when present), else
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> None:
     from cosy_lite.geometry.crops import CROP_RESOLUTION
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--models", type=Path, default=None,
+    ap.add_argument("--meshes", type=Path, default=None,
                     help="BOP models/ folder (default: data/ycbvsynth/models if present)")
     ap.add_argument("--objects", type=int, nargs="+", default=TEXTURED_YCBV)
     ap.add_argument("--batches", type=int, nargs="+", default=[8, 32])
@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> None:
     from cosy_lite.render.renderer import PyrenderRenderer
 
     with tempfile.TemporaryDirectory() as tmp:
-        models = args.models or (DEFAULT_MODELS if DEFAULT_MODELS.is_dir() else None)
+        models = args.meshes or (DEFAULT_MODELS if DEFAULT_MODELS.is_dir() else None)
         if models is None:
             from cosy_lite.synth.objects import write_bop_models
 

@@ -277,7 +277,7 @@ def _predict_pretrained(tmp_path: Path, capsys) -> tuple[int, list[str], str]:
     from cosy_lite.cli import main
 
     rc = main(["predict", "--pretrained", SET, "--rgb", str(tmp_path / "rgb.png"), "--camera", str(tmp_path / "K.json"),
-               "--models", str(tmp_path), "--out", str(tmp_path / "out")])
+               "--meshes", str(tmp_path), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     return rc, [line for line in err.splitlines() if line.strip()], err
 

@@ -158,7 +158,7 @@ def test_predict_refuses_an_image_over_the_pixel_limit_from_its_header(dataset, 
     images = {"rgb": huge_png, "depth": rec.depth_path} if which == "rgb" else {"rgb": rec.rgb_path, "depth": huge_png}
     forbid_decoding(monkeypatch, huge_png)
     rc = main(["predict", "--rgb", str(images["rgb"]), "--depth", str(images["depth"]), "--camera", str(camera),
-               "--models", str(dataset.root), "--coarse", str(tmp_path / "c.pt"), "--detections",
+               "--meshes", str(dataset.root), "--coarse", str(tmp_path / "c.pt"), "--detections",
                str(tmp_path / "d.json"), "--out", str(tmp_path / "out")])
     assert rc == 2
     _one_error_line(capsys.readouterr().err, "cosy-lite predict", huge_png)

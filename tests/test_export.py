@@ -1,6 +1,6 @@
 """ONNX export and the onnxruntime backend: pose nets and detector agree with torch, metadata and
 manifest round trip, clear errors for broken/mismatched exports, and the pipeline with
-``--backend onnx`` gives the torch backend's poses."""
+``--onnx DIR`` gives the torch backend's poses."""
 
 from __future__ import annotations
 
@@ -339,7 +339,7 @@ def test_onnx_backend_gives_the_torch_poses(tiny_synth_root, export, tmp_path, c
               "--no-progress", "--threads", "1"]
     assert infer.main([*common, "--coarse", str(export["coarse"]), "--refiner", str(export["refiner"]),
                        "--out", str(tmp_path / "torch")]) == 0
-    assert infer.main([*common, "--backend", "onnx", "--models", str(export["models"]),
+    assert infer.main([*common, "--onnx", str(export["models"]),
                        "--out", str(tmp_path / "onnx")]) == 0
     ref = read_results_csv(next((tmp_path / "torch").glob("*.csv")))
     out = read_results_csv(next((tmp_path / "onnx").glob("*.csv")))
@@ -355,9 +355,9 @@ def test_onnx_backend_gives_the_torch_poses(tiny_synth_root, export, tmp_path, c
     assert moved > 1e-3  # the random heads did move the poses: the comparison is not of identities
     capsys.readouterr()
     # Errors: a torch-only argument with the onnx backend; a folder that is not an export.
-    assert infer.main([*common, "--backend", "onnx", "--models", str(export["models"]), "--coarse", "x.pt"]) == 2
-    assert "--coarse not used with --backend onnx" in capsys.readouterr().err
-    assert infer.main(["--dataset", str(tiny_synth_root), "--backend", "onnx", "--models", str(tmp_path / "none"),
+    assert infer.main([*common, "--onnx", str(export["models"]), "--coarse", "x.pt"]) == 2
+    assert "--coarse not used with --onnx" in capsys.readouterr().err
+    assert infer.main(["--dataset", str(tiny_synth_root), "--onnx", str(tmp_path / "none"),
                        "--detections", "oracle", "--out", str(tmp_path / "x")]) == 2
     assert "none" in capsys.readouterr().err
 
@@ -408,7 +408,7 @@ def test_flow_refiner_exports_and_gives_the_torch_poses(tiny_synth_root, tmp_pat
     common = ["--dataset", str(tiny_synth_root), "--detections", "oracle", "--no-progress", "--threads", "1"]
     assert infer.main([*common, "--coarse", str(coarse), "--refiner", str(refiner), "--n-refiner-iters", "1",
                        "--out", str(tmp_path / "t")]) == 0
-    assert infer.main([*common, "--backend", "onnx", "--models", str(tmp_path / "models"), "--n-refiner-iters", "1",
+    assert infer.main([*common, "--onnx", str(tmp_path / "models"), "--n-refiner-iters", "1",
                        "--out", str(tmp_path / "o")]) == 0
     assert infer.main([*common, "--coarse", str(coarse), "--refiner", str(refiner), "--n-refiner-iters", "0",
                        "--out", str(tmp_path / "c")]) == 0  # coarse only

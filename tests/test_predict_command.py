@@ -52,7 +52,7 @@ def setup(tiny_synth_root, tmp_path_factory) -> dict:
 
 def _args(s: dict, out: Path, *extra: str) -> list[str]:
     return ["predict", "--rgb", str(s["rec"].rgb_path), "--camera", str(s["dir"] / "camera.json"),
-            "--models", str(s["root"]), "--out", str(out), "--n-refiner-iters", "1", *extra]
+            "--meshes", str(s["root"]), "--out", str(out), "--n-refiner-iters", "1", *extra]
 
 
 def _expected_poses(s: dict) -> dict[int, np.ndarray]:
@@ -162,7 +162,7 @@ def test_bad_arguments(setup, tmp_path, capsys):
     assert cli(_args(setup, tmp_path, "--coarse", str(setup["coarse"]))) == 2
     assert "no detections" in capsys.readouterr().err
     bad_models = _args(setup, tmp_path, *ck)
-    bad_models[bad_models.index("--models") + 1] = str(setup["export"])
+    bad_models[bad_models.index("--meshes") + 1] = str(setup["export"])
     assert cli(bad_models) == 2
     assert "pass it as --onnx" in capsys.readouterr().err
     small = tmp_path / "small.png"

@@ -1,4 +1,4 @@
-"""``cosy-lite generate --models DIR --units mm|m``: meshes made here (PLY, OBJ, GLB) -> a complete,
+"""``cosy-lite generate --meshes DIR --units mm|m``: meshes made here (PLY, OBJ, GLB) -> a complete,
 valid BOP dataset; units checked for plausibility; clear errors."""
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def test_object_ids_and_units(meshes, tmp_path):
 
 def test_generate_a_complete_bop_dataset(meshes, tmp_path):
     out = tmp_path / "myobjects"
-    assert main(["generate", "--models", str(meshes), "--units", "mm", "--out", str(out), *TINY]) == 0
+    assert main(["generate", "--meshes", str(meshes), "--units", "mm", "--out", str(out), *TINY]) == 0
     assert [p for p in check_dataset(out) if p.severity == "error"] == []
     ds = BopDataset(out)
     assert ds.obj_ids == [1, 2, 3]
@@ -71,14 +71,14 @@ def test_generate_a_complete_bop_dataset(meshes, tmp_path):
 
 
 def test_bad_generate_arguments(meshes, tmp_path, capsys):
-    assert main(["generate", "--models", str(meshes), "--out", str(tmp_path / "x")]) == 2
+    assert main(["generate", "--meshes", str(meshes), "--out", str(tmp_path / "x")]) == 2
     assert "--units" in capsys.readouterr().err
-    assert main(["generate", "--models", str(meshes), "--units", "mm", "--out", str(tmp_path / "my-objects")]) == 2
+    assert main(["generate", "--meshes", str(meshes), "--units", "mm", "--out", str(tmp_path / "my-objects")]) == 2
     assert "'my-objects' contains '-' or '_'" in capsys.readouterr().err
-    assert main(["generate", "--models", str(meshes), "--units", "m", "--out", str(tmp_path / "big"), *TINY]) == 2
+    assert main(["generate", "--meshes", str(meshes), "--units", "m", "--out", str(tmp_path / "big"), *TINY]) == 2
     err = capsys.readouterr().err
     assert "a_box.ply" in err and "[--units]" in err and "implausible" in err
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert main(["generate", "--models", str(empty), "--units", "mm", "--out", str(tmp_path / "none")]) == 2
+    assert main(["generate", "--meshes", str(empty), "--units", "mm", "--out", str(tmp_path / "none")]) == 2
     assert "no mesh files" in capsys.readouterr().err

@@ -2,7 +2,7 @@
 the BOP19 submission CSV.
 
 Parse, load the checkpoints (:meth:`cosy_lite.inference.predictor.Predictor.from_checkpoints`), the
-shipped reference models (``--pretrained NAME``) or the exported ONNX networks (``--backend onnx``:
+shipped reference models (``--pretrained NAME``) or the exported ONNX networks (``--onnx DIR``:
 :meth:`~cosy_lite.inference.predictor.Predictor.from_onnx`), hand over to
 :func:`cosy_lite.inference.bop_run.run_on_split` (ViVo targets, CSV ``METHOD_DATASET-SPLIT.csv``,
 overlays, results checker). Examples::
@@ -11,7 +11,7 @@ overlays, results checker). Examples::
         --coarse runs/ycbvsynth-coarse/checkpoint.pt --refiner runs/ycbvsynth-refiner/checkpoint.pt \\
         --out results/ --vis 8
     cosy-lite infer --dataset ycbvsynth --pretrained ycbvsynth --out results/   # the shipped reference models
-    cosy-lite infer --dataset ycbvsynth --backend onnx --models onnx/ --threads 2 --out results/
+    cosy-lite infer --dataset ycbvsynth --onnx onnx/ --threads 2 --out results/
 """
 
 from __future__ import annotations
@@ -54,10 +54,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--method", default="cosylite", help="method name of the CSV file (no '_')")
     ap.add_argument("--vis", type=int, default=0, metavar="N", help="write overlay PNGs for the first N images")
     ap.add_argument("--limit-images", type=int, default=None, metavar="N", help="only the first N target images")
-    ap.add_argument("--backend", default="torch", choices=["torch", "onnx"],
-                    help="torch: the checkpoints; onnx: the exported networks of --models in onnxruntime (CPU)")
-    ap.add_argument("--models", type=Path, default=None, metavar="DIR",
-                    help="export folder of 'cosy-lite export' (--backend onnx): manifest.json + .onnx files")
+    ap.add_argument("--onnx", type=Path, default=None, metavar="DIR",
+                    help="a 'cosy-lite export' folder: its networks in onnxruntime (CPU) instead of checkpoints, run "
+                         "with its settings")
     ap.add_argument("--threads", type=int, default=None, metavar="N",
                     help="CPU threads of the networks (torch and onnxruntime; default: their own)")
     ap.add_argument("--device", default=None, help="torch backend: cpu or cuda (default: cuda when available)")
@@ -65,25 +64,28 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     add_setting_arguments(ap, "images ")
 
 
-# backend -> arguments that only it takes (anything given there for the other backend is an error)
-BACKEND_ONLY = {"torch": ("coarse", "refiner", "detector", "pretrained", "scorer"), "onnx": ("models",)}
+CHECKPOINT_ARGUMENTS = ("coarse", "refiner", "detector", "pretrained", "scorer")  # not with --onnx
 PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
 
 
+def _backend(args: argparse.Namespace) -> str:
+    return "torch" if args.onnx is None else "onnx"
+
+
 def _backend_problem(args: argparse.Namespace, config: Any) -> str | None:
-    """What is wrong with the combination of --backend, the settings and the other arguments (None: nothing)."""
-    other = "onnx" if args.backend == "torch" else "torch"
-    given = [f"--{k}" for k in BACKEND_ONLY[other] if getattr(args, k) is not None]
-    if given:
-        return f"{' '.join(given)} not used with --backend {args.backend}"
+    """What is wrong with the combination of networks, settings and other arguments (None: nothing)."""
+    backend = _backend(args)
+    given = [f"--{k}" for k in CHECKPOINT_ARGUMENTS if getattr(args, k) is not None]
+    if backend == "onnx" and given:
+        return f"{' '.join(given)} not used with --onnx (the export's networks)"
     if args.also_before_icp is not None and not config.icp:
         return "--also-before-icp needs --icp"
-    if config.precision not in PRECISIONS[args.backend]:
-        return f"precision {config.precision} needs another backend ({args.backend}: {list(PRECISIONS[args.backend])})"
-    if args.backend == "onnx":
-        return None if args.models is not None else "--backend onnx needs --models DIR (a 'cosy-lite export' folder)"
+    if config.precision not in PRECISIONS[backend]:
+        return f"precision {config.precision} needs another backend ({backend}: {list(PRECISIONS[backend])})"
+    if backend == "onnx":
+        return None
     if args.coarse is None and not (config.start in TEMPLATE_STARTS and args.refiner is not None):
-        return "give --coarse CKPT (or --start templates with --refiner CKPT, or --backend onnx --models DIR)"
+        return "give --pretrained NAME, --coarse CKPT (or --start templates with --refiner CKPT), or --onnx DIR"
     if args.detector is None and args.detections is None:
         return "give --detector CKPT or --detections oracle|FILE.json"
     return None
@@ -102,12 +104,12 @@ def _settings(args: argparse.Namespace) -> Any:
     """The inference settings of the command line: over the --pretrained set's (torch) or the export's (onnx)."""
     from cosy_lite.inference.settings import config_from_arguments, pretrained_config
 
-    if args.backend == "onnx" and args.models is not None:
+    if args.onnx is not None:
         from cosy_lite.export.manifest import Manifest
 
-        manifest = Manifest.read(args.models)
+        manifest = Manifest.read(args.onnx)
         return config_from_arguments(args, manifest.inference, manifest.path)
-    return pretrained_config(args, use_networks=args.backend == "torch")
+    return pretrained_config(args)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -146,11 +148,11 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dataset = BopDataset(root)
-    if args.backend == "onnx":
-        predictor = Predictor.from_onnx(args.models, dataset=dataset, config=config, threads=args.threads,
+    if args.onnx is not None:
+        predictor = Predictor.from_onnx(args.onnx, dataset=dataset, config=config, threads=args.threads,
                                         detector=args.detections is None, templates_cache=args.templates_cache)
         if args.detections is None and predictor.detector is None:
-            raise SetupError(f"{args.models / 'manifest.json'}: the export has no detector: export one "
+            raise SetupError(f"{args.onnx / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
         detector_path = predictor.detector.path if predictor.detector is not None else None
     else:

@@ -1,10 +1,10 @@
 """``cosy-lite predict``: one image in, detections + 6D poses out (JSON, the BOP19 CSV rows, an overlay, timings).
 
-    cosy-lite predict --rgb IMG [--depth DEPTH [--depth-scale S]] --camera K.json --models NAME_OR_DIR
+    cosy-lite predict --rgb IMG [--depth DEPTH [--depth-scale S]] --camera K.json --meshes NAME_OR_DIR
         (--coarse CKPT [--refiner CKPT] [--detector CKPT] | --onnx EXPORT_DIR) [--objects 1,5] [--icp]
         [--detections FILE.json] --out DIR
 
-``--models`` are the objects' 3D models: a BOP ``models/`` folder, a dataset folder (its
+``--meshes`` are the objects' 3D models: a BOP ``models/`` folder, a dataset folder (its
 ``models/``) or a dataset name under ``$COSY_LITE_DATA`` (default ``./data``). The networks are
 checkpoints (torch backend) or a ``cosy-lite export`` folder (onnxruntime backend). From Python the
 same is :class:`~cosy_lite.inference.predictor.Predictor` (``from_checkpoints`` / ``from_onnx``,
@@ -52,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="depth value * S = mm (default: the camera file's depth_scale, else 1)")
     p.add_argument("--camera", type=Path, required=True, metavar="K.json",
                    help="intrinsics: BOP camera.json (fx, fy, cx, cy), a scene_camera entry (cam_K) or {\"K\": 3x3}")
-    p.add_argument("--models", required=True, metavar="NAME_OR_DIR",
+    p.add_argument("--meshes", required=True, metavar="NAME_OR_DIR",
                    help="the objects' 3D models: a BOP models/ folder, a dataset folder, or a dataset name")
     p.add_argument("--pretrained", default=None, metavar="NAME",
                    help="the shipped reference models NAME (e.g. ycbvsynth) with their inference settings (pipeline.json; "
@@ -88,19 +88,19 @@ class ImagePrediction:
 
 
 def models_folder(name_or_dir: str) -> Path:
-    """The BOP ``models/`` folder of ``--models``: the folder itself if it has ``models_info.json``,
+    """The BOP ``models/`` folder of ``--meshes``: the folder itself if it has ``models_info.json``,
     else its ``models/``, else ``$COSY_LITE_DATA/NAME/models``. Errors name what was looked for."""
     from cosy_lite.bop.command_check_results import resolve_dataset
     from cosy_lite.errors import BopFormatError
 
     p = Path(name_or_dir)
     if (p / "manifest.json").is_file():
-        raise BopFormatError(p, "--models", "this is a 'cosy-lite export' folder: pass it as --onnx; --models are the "
+        raise BopFormatError(p, "--meshes", "this is a 'cosy-lite export' folder: pass it as --onnx; --meshes are the "
                              "objects' 3D models (a BOP models/ folder, a dataset folder or a dataset name)")
     for cand in (p, p / "models", resolve_dataset(name_or_dir) / "models"):
         if (cand / "models_info.json").is_file():
             return cand
-    raise BopFormatError(p, "--models", "no models_info.json in it, in its models/ or in "
+    raise BopFormatError(p, "--meshes", "no models_info.json in it, in its models/ or in "
                          f"{resolve_dataset(name_or_dir) / 'models'} (expected a BOP models/ folder, a dataset "
                          "folder or a dataset name under $COSY_LITE_DATA)")
 
@@ -232,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    models_dir = models_folder(args.models)
+    models_dir = models_folder(args.meshes)
     rgb, K, depth = _load_inputs(args)
     predictor = _build_predictor(args, config, models_dir)
     if args.objects:

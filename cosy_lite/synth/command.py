@@ -14,9 +14,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="dataset folder (default: $COSY_LITE_DATA or ./data, / NAME)")
     p.add_argument("--splits", nargs="+", default=["train_pbr", "test"], choices=["train_pbr", "test"])
     p.add_argument("--workers", type=int, default=None, help="processes rendering layouts in parallel")
-    p.add_argument("--models", type=Path, default=None, metavar="DIR",
+    p.add_argument("--meshes", type=Path, default=None, metavar="DIR",
                    help="your own objects: a folder of meshes (PLY/OBJ/glTF/GLB/STL), one object per file (needs --units)")
-    p.add_argument("--units", choices=["mm", "m"], default=None, help="unit of the --models meshes")
+    p.add_argument("--units", choices=["mm", "m"], default=None, help="unit of the --meshes files")
     p.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. train.n_images=200 seed=3")
 
 
@@ -55,14 +55,14 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(SynthConfig, args.config, args.overrides)
     if args.workers is not None:
         cfg.workers = args.workers
-    if (args.models is None) != (args.units is None):
-        print("error: --models DIR and --units mm|m go together (the unit of the meshes is not guessed)", file=sys.stderr)
+    if (args.meshes is None) != (args.units is None):
+        print("error: --meshes DIR and --units mm|m go together (the unit of the meshes is not guessed)", file=sys.stderr)
         return 2
-    if args.models is not None:
+    if args.meshes is not None:
         if args.out is None:
-            print("error: --models needs --out DIR (the dataset folder; its name is the dataset's name)", file=sys.stderr)
+            print("error: --meshes needs --out DIR (the dataset folder; its name is the dataset's name)", file=sys.stderr)
             return 2
-        cfg.models_dir, cfg.models_units, cfg.name = str(args.models), args.units, args.out.name
+        cfg.models_dir, cfg.models_units, cfg.name = str(args.meshes), args.units, args.out.name
     out = args.out or default_data_root() / cfg.name
     if "-" in out.name or "_" in out.name:
         print(f"error: dataset folder name {out.name!r} contains '-' or '_': the BOP toolkit splits results file "

@@ -1,4 +1,4 @@
-"""Your own objects for the generator (``cosy-lite generate --models DIR --units mm|m``): meshes -> BOP ``models/``.
+"""Your own objects for the generator (``cosy-lite generate --meshes DIR --units mm|m``): meshes -> BOP ``models/``.
 
 Every mesh file of ``DIR`` (PLY, OBJ, glTF/GLB, STL, OFF) is one object. Object ids: taken from the
 file names when all are BOP names (``obj_000005.ply``), else 1, 2, ... in sorted file-name order
@@ -34,10 +34,10 @@ def find_meshes(models_dir: str | Path) -> dict[int, Path]:
     """obj_id -> mesh file of ``models_dir`` (see the module docstring for the ids)."""
     models_dir = Path(models_dir)
     if not models_dir.is_dir():
-        raise BopFormatError(models_dir, "--models", "folder not found (expected a folder of mesh files)")
+        raise BopFormatError(models_dir, "--meshes", "folder not found (expected a folder of mesh files)")
     files = sorted(p for p in models_dir.iterdir() if p.is_file() and p.suffix.lower() in MESH_EXTS)
     if not files:
-        raise BopFormatError(models_dir, "--models", f"no mesh files ({', '.join(MESH_EXTS)})")
+        raise BopFormatError(models_dir, "--meshes", f"no mesh files ({', '.join(MESH_EXTS)})")
     ids = [_BOP_NAME.match(p.stem) for p in files]
     if all(ids) and len({int(m.group(1)) for m in ids}) == len(files) and all(int(m.group(1)) > 0 for m in ids):
         return {int(m.group(1)): p for m, p in zip(ids, files)}
