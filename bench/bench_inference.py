@@ -14,7 +14,7 @@ bf16 autocast, ``--precisions``) and object count: the coarse model + 4 refiner 
 context, mesh uploads, oneDNN kernels for the batch shape), then ``--repeats`` calls, the variants
 called in turn so that they share the machine's load; medians and the best call, broken down into
 crops (boxes, roi_align, K_crop, pose updates), render, networks and ICP. The detector
-(``--detector``, else the demo profile's detector untrained: ``cosy_lite/configs/detector/demo.yaml``) is
+(``--detector``, else the demo profile's detector untrained: ``configs/detector/demo.yaml``) is
 timed separately on the same image.
 
 Reference (issue 6): the public CosyPose implementation (happypose), EfficientNet-B3 at 240x320,
@@ -35,7 +35,7 @@ from cosy_lite.geometry.crops import CROP_RESOLUTION
 
 PROFILES = {  # name -> (backbone, crop (h, w))
     "effb3": ("efficientnet_b3", CROP_RESOLUTION),  # CosyPose's
-    "demo": ("resnet18", (96, 128)),  # cosy_lite/configs/{coarse,refiner}/demo.yaml
+    "demo": ("resnet18", (96, 128)),  # configs/{coarse,refiner}/demo.yaml
 }
 REFERENCE_S = {1: 0.74, 5: 4.45}  # happypose CosyPose, EfficientNet-B3 240x320, this machine, no detector
 STAGES = ("crops", "render", "networks", "icp")

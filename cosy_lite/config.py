@@ -1,4 +1,4 @@
-"""Typed configuration: dataclasses hold the defaults, YAML files in ``cosy_lite/configs/`` (shipped in
+"""Typed configuration: dataclasses hold the defaults, YAML files in the top-level ``configs/`` (shipped in
 the package: :func:`packaged_config`) hold only the differences, and ``key=value`` command-line
 overrides come last (merged with OmegaConf)."""
 
@@ -18,12 +18,15 @@ T = TypeVar("T")
 
 
 def packaged_config(*parts: str) -> Path:
-    """A YAML file shipped in the package's ``configs/`` folder, e.g. ``packaged_config("synth", "tiny.yaml")``
-    or ``packaged_config("refiner", "demo.yaml")`` (found with importlib.resources, so an installed package
-    finds its own; the file may not exist: callers check)."""
+    """A YAML file of the config profiles, e.g. ``packaged_config("synth", "tiny.yaml")`` or
+    ``packaged_config("refiner", "demo.yaml")``: in an installed package its data ``cosy_lite/configs/``
+    (found with importlib.resources), in a source checkout the top-level ``configs/`` that data is
+    installed from (pyproject.toml maps it). The file may not exist: callers check."""
     from importlib.resources import files
 
-    return Path(str(files("cosy_lite").joinpath("configs", *parts)))
+    installed = Path(str(files("cosy_lite").joinpath("configs")))
+    root = installed if installed.is_dir() else Path(__file__).resolve().parents[1] / "configs"
+    return root.joinpath(*parts)
 
 
 def _omegaconf_problem(e: OmegaConfBaseException) -> tuple[str, str]:

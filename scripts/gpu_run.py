@@ -93,7 +93,7 @@ class Plan:
         det = small + ["loop.batch_size=1", "detector.min_size=120", "detector.max_size=160"]
         # the refiner starts from the reference weights as on the GPU (its network has no per-object
         # part; the tiny set's 4 objects do not fit the reference detector's 22 classes)
-        return Plan(device="cpu", synth_args=["--config", str(REPO / "cosy_lite/configs/synth/tiny.yaml"), "--workers", "2",
+        return Plan(device="cpu", synth_args=["--config", str(REPO / "configs/synth/tiny.yaml"), "--workers", "2",
                                               "train.n_images=20", "test.n_images=6"],
                     minutes=10.0,
                     jobs={"detector": Job("detector", "demo", det), "coarse": Job("coarse", "demo", pose),

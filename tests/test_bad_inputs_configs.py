@@ -123,7 +123,8 @@ def _python_tag(marker: Path) -> str:
 
 
 @pytest.mark.parametrize("prog, key", [("train.py", "loop.steps"), ("cosy-lite generate", "train.n_images"),
-                                       ("infer.py", "max_translation")], ids=["train", "generate", "infer-icp-set"])
+                                       ("infer.py", "icp_settings.max_translation")],
+                         ids=["train", "generate", "infer-set"])
 def test_a_python_tag_in_an_override_is_one_message_and_never_runs(tmp_path, capsys, prog, key):
     import infer
     import train
@@ -137,7 +138,7 @@ def test_a_python_tag_in_an_override_is_one_message_and_never_runs(tmp_path, cap
         rc = main(["generate", "--out", str(tmp_path / "d"), override])
     else:
         rc = infer.main(["--dataset", str(tmp_path), "--coarse", "c.pt", "--detections", "oracle", "--icp",
-                         "--icp-set", override])
+                         "--set", override])
     assert rc == 2
     _one_error(capsys.readouterr().err, f"{prog}: error: ", f"command-line override {override!r} [{key}]: YAML tag "
                "refused at line 1 column 1: could not determine a constructor for the tag "
@@ -152,8 +153,11 @@ def test_a_python_tag_in_an_override_is_one_message_and_never_runs(tmp_path, cap
     (["--n-refiner-iters", "-1"], "--n-refiner-iters -1: expected an integer >= 0"),
     (["--vis", "-2"], "--vis -2: expected an integer >= 0"),
     (["--candidates", "0"], "--candidates 0: expected an integer >= 1"),
-    (["--icp", "--icp-set", "max_translation=far"], "--icp-set: command-line override 'max_translation=far' [max_translation]"),
-    (["--icp", "--icp-set", "verify_candidatez=false"], "[verify_candidatez]: Key 'verify_candidatez' not in 'IcpConfig'"),
+    (["--icp", "--icp-set", "max_translation=far"],
+     "command-line override 'icp_settings.max_translation=far' [icp_settings.max_translation]"),
+    (["--icp", "--icp-set", "verify_candidatez=false"], "[icp_settings.verify_candidatez]: Key 'verify_candidatez' not in"),
+    (["--set", "n_candidates=many"], "command-line override 'n_candidates=many' [n_candidates]"),
+    (["--settings", "missing.yaml"], "missing.yaml: config file not found"),
     (["--icp", "--icp-set", "iterations=[5]"], "max_correspondence_distances"),
 ])
 def test_infer_py_bad_number(tmp_path, capsys, args, words):

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-BUILD_INPUTS = ("pyproject.toml", "README.md", "cosy_lite", "models")  # what the wheel is built from (readme: README.md; models/: the reference models)
+BUILD_INPUTS = ("pyproject.toml", "README.md", "cosy_lite", "configs", "models")  # what the wheel is built from (configs/: the profiles; models/: the reference models)
 SMALL_REFINER = ["loop.steps=2", "loop.batch_size=2", "loop.num_workers=0", "loop.device=cpu", "loop.log_every=1",
                  "data.val_images=1", "data.val_instances=2", "data.n_points=300", "net.arch=early",
                  "net.backbone=resnet18", "net.crop_resolution=[60,80]", "optim.warmup_steps=1"]
@@ -160,5 +160,6 @@ def test_pyproject_lists_every_package_and_maps_the_reference_models():
 
     tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     folders = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "cosy_lite").rglob("__init__.py")}
-    assert set(tool["packages"]) == folders | {"cosy_lite.reference.weights"}
-    assert tool["package-dir"] == {"cosy_lite.reference.weights": "models"} and (ROOT / "models").is_dir()
+    assert set(tool["packages"]) == folders | {"cosy_lite.configs", "cosy_lite.reference.weights"}
+    assert tool["package-dir"] == {"cosy_lite.configs": "configs", "cosy_lite.reference.weights": "models"}
+    assert (ROOT / "models").is_dir() and any((ROOT / "configs").glob("*/*.yaml"))

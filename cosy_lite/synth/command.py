@@ -10,7 +10,7 @@ from pathlib import Path
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, default=None,
-                   help="YAML with differences from the defaults (default dataset ycbvsynth); e.g. cosy_lite/configs/synth/tiny.yaml")
+                   help="YAML with differences from the defaults (default dataset ycbvsynth); e.g. configs/synth/tiny.yaml")
     p.add_argument("--out", type=Path, default=None, help="dataset folder (default: $COSY_LITE_DATA or ./data, / NAME)")
     p.add_argument("--splits", nargs="+", default=["train_pbr", "test"], choices=["train_pbr", "test"])
     p.add_argument("--workers", type=int, default=None, help="processes rendering layouts in parallel")

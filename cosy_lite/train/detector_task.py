@@ -64,7 +64,7 @@ class CpuSpeedConfig:
 
 @dataclass
 class DetectorTrainConfig:
-    """Everything that defines a detector training run (YAML in cosy_lite/configs/detector/ holds differences)."""
+    """Everything that defines a detector training run (YAML in configs/detector/ holds differences)."""
 
     model: str = "detector"
     dataset: str = "ycbvsynth"

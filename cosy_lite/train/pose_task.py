@@ -64,7 +64,7 @@ class PoseNoiseConfig:
 
 @dataclass
 class PoseTrainConfig:
-    """Everything that defines a coarse or refiner training run (YAML in cosy_lite/configs/ holds differences)."""
+    """Everything that defines a coarse or refiner training run (YAML in configs/ holds differences)."""
 
     model: str = "refiner"
     dataset: str = "ycbvsynth"
