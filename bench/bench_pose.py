@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
 
     refiner, ck_ref = load(args.refiner, "refiner")
     res = tuple(ck_ref.meta["net"]["crop_resolution"])
-    objects = ObjectTable.from_dataset(ds, ck_ref.meta["obj_ids"])
+    objects = ObjectTable.from_dataset(ds, sorted(set(ck_ref.meta["obj_ids"]) & set(ds.models_info)))  # those the dataset has
     items = PoseDataset(ds, args.split, obj_ids=objects.obj_ids, min_visib_fract=0.1)
     g = torch.Generator().manual_seed(args.seed)
     idx = torch.randperm(len(items), generator=g)[: args.max_instances].tolist()

@@ -46,7 +46,7 @@ def main() -> None:
     task = PoseTask(cfg, args.dataset)
     setup_s = time.perf_counter() - t
     model = task.build_model().train()
-    optimizer, _ = build_optimizer(model.parameters(), cfg.optim)
+    optimizer = build_optimizer(model.parameters(), cfg.optim)
     dataset = task.train_dataset()
     rng = np.random.default_rng(0)
     B = cfg.loop.batch_size
