@@ -42,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_inference (image choice, oracle detections)
 
 from bench_inference import PROFILES, REFERENCE_S  # noqa: E402  (the same networks and reference times)
+
 TARGET_FRACTION = 1 / 3  # issue 7: end to end at most a third of the reference
 RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
 
@@ -176,7 +177,6 @@ def end_to_end_table(ds, nets, objects_counts: list[int], warmup: int, repeat: i
 
 def detector_table(ds, tmp: Path, threads: int, warmup: int, repeat: int) -> list[str]:
     import torch
-
     from bench_inference import pick_image
 
     from cosy_lite.config import load_config, packaged_config

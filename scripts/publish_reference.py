@@ -33,8 +33,8 @@ def default_folder(name: str) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cosy_lite.model_files.reference_models import publish
     from cosy_lite.model_files.checkpoint import load_checkpoint
+    from cosy_lite.model_files.reference_models import publish
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", type=Path, required=True)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.geometry.symmetries import rotation_errors_deg
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.models.appearance_templates import AppearanceTemplates, square_crops, textured_obj_ids
 from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 from cosy_lite.render.renderer import PyrenderRenderer

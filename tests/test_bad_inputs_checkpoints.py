@@ -83,9 +83,10 @@ def test_payload_does_not_run_in_export(tmp_path, capsys):
 
 def test_payload_does_not_run_on_resume(tmp_path):
     """The training loop's --resume path (train.py --resume ends here, see test_train_py_resume_...)."""
+    from toy_task import ToyTask
+
     from cosy_lite.train.loop import LoopConfig, train
     from cosy_lite.train.schedule import OptimConfig
-    from toy_task import ToyTask
 
     marker = tmp_path / "PWNED"
     evil = _evil(tmp_path / "checkpoint.pt", marker, kind="toy")

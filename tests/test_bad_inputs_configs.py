@@ -14,6 +14,7 @@ import torch
 
 from cosy_lite.config import load_config, packaged_config
 from cosy_lite.errors import BopFormatError, ConfigError, run_reporting_errors
+
 # (torchvision, imported by the training tasks, before anything renders: see cosy_lite/inference/predictor.py)
 from cosy_lite.train.pose_task import PoseTrainConfig
 

@@ -18,6 +18,7 @@ from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.results import PoseEstimate, write_results_csv
 from cosy_lite.cli import main
 from cosy_lite.errors import BopFormatError
+
 # torchvision (imported by the inference modules) before any rendering: after Mesa has rendered,
 # importing it crashes the process (see cosy_lite/inference/predictor.py).
 from cosy_lite.inference.bop_run import run_on_split

@@ -15,7 +15,6 @@ import torch
 from bop_fixtures import forbid_decoding, scene_dir, write_huge_png, write_tiny_bop
 from torch import nn
 
-from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections, degenerate_boxes
 from cosy_lite.bop.results import read_results_csv
@@ -23,6 +22,7 @@ from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.bop_run import run_on_split
 from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer
 from cosy_lite.inference.predictor import Predictor
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.model_files.loaders import PoseModel
 
 CROP = (60, 80)
@@ -166,8 +166,9 @@ def test_predict_refuses_an_image_over_the_pixel_limit_from_its_header(dataset, 
 
 @pytest.mark.parametrize("which", ["rgb", "depth"])
 def test_infer_refuses_a_dataset_image_over_the_pixel_limit(huge_png, tmp_path, capsys, monkeypatch, which):
-    import infer
     from test_inference import _save_pose_ckpt
+
+    import infer
 
     root = write_tiny_bop(tmp_path)
     image = scene_dir(root) / which / "000000.png"

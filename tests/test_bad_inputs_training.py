@@ -13,13 +13,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from toy_task import ToyTask
 
 from cosy_lite.errors import ConfigError
 from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint
 from cosy_lite.train.loop import LoopConfig, train
 from cosy_lite.train.run_log import read_log
 from cosy_lite.train.schedule import OptimConfig
-from toy_task import ToyTask
 
 VOLATILE = ("items_per_s", "elapsed_s")  # wall-clock values: differ between runs
 # Each run is a real process (SIGKILL ends it as kill -9 does), forked by a forkserver that has

@@ -10,7 +10,16 @@ import cv2
 import numpy as np
 import pytest
 from bop_fixtures import (
-    BOX_MM, CAM_R_W2C, CAM_T_W2C_MM, DEPTH_SCALE, GT, K, TARGETS, edit_json, scene_dir, write_tiny_bop,
+    BOX_MM,
+    CAM_R_W2C,
+    CAM_T_W2C_MM,
+    DEPTH_SCALE,
+    GT,
+    TARGETS,
+    K,
+    edit_json,
+    scene_dir,
+    write_tiny_bop,
 )
 
 from cosy_lite.bop import io

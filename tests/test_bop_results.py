@@ -13,7 +13,12 @@ from bop_fixtures import GT, write_tiny_bop
 
 from cosy_lite.bop import command_check_results
 from cosy_lite.bop.results import (
-    HEADER, PoseEstimate, parse_results_filename, read_results_csv, results_filename, write_results_csv,
+    HEADER,
+    PoseEstimate,
+    parse_results_filename,
+    read_results_csv,
+    results_filename,
+    write_results_csv,
 )
 from cosy_lite.bop.validate import check_results
 from cosy_lite.errors import BopFormatError

@@ -16,7 +16,11 @@ from bop_fixtures import write_tiny_bop
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.params import DATASETS, RENAMED_DATASETS, get_dataset_params
 from cosy_lite.bop.results import (
-    PoseEstimate, misread_dataset, parse_results_filename, results_filename, toolkit_parse_results_filename,
+    PoseEstimate,
+    misread_dataset,
+    parse_results_filename,
+    results_filename,
+    toolkit_parse_results_filename,
     write_results_csv,
 )
 from cosy_lite.bop.validate import check_results

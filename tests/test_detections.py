@@ -5,14 +5,18 @@ from __future__ import annotations
 import json
 import math
 
+import bop_fixtures as fx
 import numpy as np
 import pytest
 import torch
 
-import bop_fixtures as fx
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import (
-    Detections, oracle_detections, read_detections_json, rle_to_mask, write_detections_json,
+    Detections,
+    oracle_detections,
+    read_detections_json,
+    rle_to_mask,
+    write_detections_json,
 )
 from cosy_lite.errors import BopFormatError
 from cosy_lite.eval.detection import coco_ground_truth, evaluate_detections, evaluate_detections_file

@@ -11,7 +11,12 @@ from torchvision.ops import FrozenBatchNorm2d, box_iou
 
 from cosy_lite.bop.detections import Detections
 from cosy_lite.models.detector import (
-    DETECTORS, Detector, DetectorConfig, LabelMap, detect, detector_losses,
+    DETECTORS,
+    Detector,
+    DetectorConfig,
+    LabelMap,
+    detect,
+    detector_losses,
 )
 
 H, W = 120, 160

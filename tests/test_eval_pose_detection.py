@@ -17,7 +17,12 @@ from bop_fixtures import GT, edit_json, scene_dir, write_tiny_bop
 from cosy_lite.bop.results import PoseEstimate, write_results_csv
 from cosy_lite.errors import BopFormatError
 from cosy_lite.eval.pose_detection import (
-    GroupErrors, average_precision, evaluate_6d_detection, object_average_precisions, score_groups, top_per_image,
+    GroupErrors,
+    average_precision,
+    evaluate_6d_detection,
+    object_average_precisions,
+    score_groups,
+    top_per_image,
 )
 
 INF = np.inf

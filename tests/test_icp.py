@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from cosy_lite.inference.icp import (IcpConfig, IcpResult, depth_agreement, refine_pose_icp, refine_poses_icp,
-                                    rotation_angle_deg)
+from cosy_lite.inference.icp import IcpConfig, IcpResult, depth_agreement, refine_pose_icp, refine_poses_icp, rotation_angle_deg
 from cosy_lite.render.renderer import PyrenderRenderer
 
 MUSTARD, DRILL, PLANE, OCCLUDER, CAN = 5, 15, 90, 91, 92  # YCB-V mustard bottle and power drill: no symmetry

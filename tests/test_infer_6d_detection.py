@@ -12,12 +12,12 @@ import pytest
 import torch
 from test_inference import _detections_json, _save_pose_ckpt
 
-from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.results import read_results_csv
 from cosy_lite.inference.bop_run import run_on_split, select_top_detections
 from cosy_lite.inference.predictor import Predictor
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.inference.vivo import targets_by_image
 
 

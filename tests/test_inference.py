@@ -14,12 +14,12 @@ import pytest
 import torch
 from torch import nn
 
-from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.results import HEADER, read_results_csv
 from cosy_lite.inference.bop_run import run_on_split
 from cosy_lite.inference.predictor import TIMING_KEYS, Predictor
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
 from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
 from cosy_lite.model_files.loaders import PoseModel

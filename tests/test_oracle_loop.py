@@ -32,10 +32,11 @@ import torch
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-# torchvision before any rendering (see cosy_lite.inference.predictor)
-from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.bop.detections import Detections
 from cosy_lite.inference.predictor import Predictor
+
+# torchvision before any rendering (see cosy_lite.inference.predictor)
+from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.model_files.loaders import PoseModel
 from cosy_lite.models import render_and_compare
 

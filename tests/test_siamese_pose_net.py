@@ -83,8 +83,8 @@ def test_flattened_map_needs_a_crop_divisible_by_16():
 
 
 def test_scale_mix_noise_is_smaller_in_training_only():
-    from cosy_lite.train.pose_task import PoseNoiseConfig, initial_poses
     from cosy_lite.geometry.rotations import rotation_angle_deg
+    from cosy_lite.train.pose_task import PoseNoiseConfig, initial_poses
 
     T = torch.eye(4, dtype=torch.float64).repeat(400, 1, 1)
     T[:, 2, 3] = 0.8

@@ -9,12 +9,18 @@ import numpy as np
 import pytest
 import torch
 
+from cosy_lite.inference.predictor import Predictor  # noqa: E402
+
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.inference.predictor import Predictor  # noqa: E402
 from cosy_lite.model_files.loaders import PoseModel  # noqa: E402
-from cosy_lite.models.silhouette_templates import (SilhouetteTemplates, mask_boxes, occupancy_grids,  # noqa: E402
-                                                   random_rotations, ray_rotations)
+from cosy_lite.models.silhouette_templates import (  # noqa: E402
+    SilhouetteTemplates,
+    mask_boxes,
+    occupancy_grids,
+    random_rotations,
+    ray_rotations,
+)
 
 H, W = 480, 640
 K = np.array([[600.0, 0.0, 318.4], [0.0, 605.0, 241.7], [0.0, 0.0, 1.0]])

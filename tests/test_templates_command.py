@@ -10,8 +10,8 @@ from cosy_lite.cli import main as cli
 
 
 def test_the_predictor_reads_the_templates_the_command_rendered(tiny_synth_root, tmp_path, capsys, monkeypatch):
-    from cosy_lite.inference.object_models import ObjectModels, SetupError, objects_and_renderer, start_templates
     from cosy_lite.inference.command_templates import render_templates
+    from cosy_lite.inference.object_models import ObjectModels, SetupError, objects_and_renderer, start_templates
     from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 
     cache = tmp_path / "templates"

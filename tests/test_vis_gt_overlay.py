@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
 from bop_fixtures import NAME, write_tiny_bop
+
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.render.renderer import PyrenderRenderer
 from cosy_lite.vis.gt_overlay import render_gt_overlay

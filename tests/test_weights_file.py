@@ -7,8 +7,14 @@ import json
 import pytest
 import torch
 
-from cosy_lite.model_files.checkpoint import (Checkpoint, CheckpointError, load_checkpoint, load_weights, save_checkpoint,
-                                        save_weights)
+from cosy_lite.model_files.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    load_checkpoint,
+    load_weights,
+    save_checkpoint,
+    save_weights,
+)
 
 
 def _ckpt(kind: str = "refiner") -> Checkpoint:

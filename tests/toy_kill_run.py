@@ -90,10 +90,10 @@ def run(out: Path, resume: bool = False, kill: str | None = None, step_sleep: fl
         report: Callable[[str], None] = lambda msg: print(msg, flush=True)) -> None:
     """Train into ``out``; ``report("at step K")`` before each step and ``report("finished")`` at the end."""
     import torch
+    from toy_task import ToyTask
 
     from cosy_lite.train.loop import LoopConfig, train
     from cosy_lite.train.schedule import OptimConfig
-    from toy_task import ToyTask
 
     torch.set_num_threads(1)  # the same arithmetic in every process
     task = ToyTask()

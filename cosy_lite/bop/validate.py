@@ -18,10 +18,8 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.dataset import IMAGE_EXTS
-from cosy_lite.bop.params import (DATASETS, RENAMED_DATASETS, DatasetParams, SplitParams, dataset_name_of,
-                                  renamed_dataset_message)
-from cosy_lite.bop.results import (ResultRow, format_estimate, misread_dataset, parse_results_csv,
-                                   parse_results_filename)
+from cosy_lite.bop.params import DATASETS, RENAMED_DATASETS, DatasetParams, SplitParams, dataset_name_of, renamed_dataset_message
+from cosy_lite.bop.results import ResultRow, format_estimate, misread_dataset, parse_results_csv, parse_results_filename
 from cosy_lite.errors import BopFormatError
 
 Severity = Literal["error", "warning"]

@@ -124,8 +124,8 @@ def run(args: argparse.Namespace) -> int:
     """Check the options, the results file and the dataset (every problem reported, nothing scored
     on bad input), then score and write ``scores.json`` + ``recall_curves.png``."""
     from cosy_lite.bop.command_check_results import resolve_dataset
-    from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.io import atomic_write_text
+    from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report
     from cosy_lite.eval.evaluator import eval_split, evaluate
 
@@ -164,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
 def _run_6d_detection(args: argparse.Namespace, root: Path) -> int:
     """Score the 6D detection task and write ``scores_bop24.json`` (the toolkit's keys)."""
     from cosy_lite.bop.io import atomic_write_text
-    from cosy_lite.eval.pose_detection import evaluate_6d_detection, format_table as format_6d
+    from cosy_lite.eval.pose_detection import evaluate_6d_detection
+    from cosy_lite.eval.pose_detection import format_table as format_6d
 
     result = evaluate_6d_detection(root, args.results, args.split, args.name, args.max_sym_disc_step,
                                    progress=not args.no_progress)

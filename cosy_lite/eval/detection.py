@@ -21,8 +21,15 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from cosy_lite.bop import io
-from cosy_lite.bop.detections import (Detections, ImageKey, compressed_rle, detections_to_bop22, mask_to_rle,
-                                      read_bop22_entries, read_detections_json)
+from cosy_lite.bop.detections import (
+    Detections,
+    ImageKey,
+    compressed_rle,
+    detections_to_bop22,
+    mask_to_rle,
+    read_bop22_entries,
+    read_detections_json,
+)
 
 VISIB_IGNORE = 0.1  # toolkit: GT less visible than this gets the ignore flag
 BBOX_TYPES = ("modal", "amodal")

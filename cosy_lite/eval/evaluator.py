@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from cosy_lite.bop.dataset import BopDataset
-from cosy_lite.bop.results import PoseEstimate, read_results_csv
 from cosy_lite.bop.io import Target
+from cosy_lite.bop.results import PoseEstimate, read_results_csv
 from cosy_lite.errors import BopFormatError
 from cosy_lite.eval.depth_renderer import WindowDepthRenderer
 from cosy_lite.eval.image_errors import ImageErrors

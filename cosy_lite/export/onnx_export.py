@@ -33,7 +33,12 @@ import torch
 from torch import Tensor, nn
 
 from cosy_lite.export.manifest import (
-    POSE_INPUT_CHANNELS, Manifest, ModelEntry, file_digest, metadata_of, write_metadata,
+    POSE_INPUT_CHANNELS,
+    Manifest,
+    ModelEntry,
+    file_digest,
+    metadata_of,
+    write_metadata,
 )
 
 OPSET = 17  # >= 11 for Mask R-CNN (NMS, RoiAlign); 17 is what the legacy exporter knows well

@@ -29,7 +29,13 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from cosy_lite.export.manifest import (
-    POSE_INPUT_CHANNELS, POSE_KINDS, REQUIRED_META, Manifest, ModelEntry, OnnxModelError, parse_json_meta,
+    POSE_INPUT_CHANNELS,
+    POSE_KINDS,
+    REQUIRED_META,
+    Manifest,
+    ModelEntry,
+    OnnxModelError,
+    parse_json_meta,
 )
 from cosy_lite.models.detection_masks import binary_masks
 from cosy_lite.models.flow_pose_solver import FLOW_STRIDE

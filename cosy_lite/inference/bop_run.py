@@ -27,8 +27,15 @@ import numpy as np
 import torch
 
 from cosy_lite.bop.dataset import BopDataset, ImageRecord
-from cosy_lite.bop.detections import (MIN_BOX_SIZE_PX, Detections, degenerate_boxes, detections_to_bop22,
-                                      oracle_detections, read_detections_json, write_bop22_entries)
+from cosy_lite.bop.detections import (
+    MIN_BOX_SIZE_PX,
+    Detections,
+    degenerate_boxes,
+    detections_to_bop22,
+    oracle_detections,
+    read_detections_json,
+    write_bop22_entries,
+)
 from cosy_lite.bop.results import PoseEstimate, results_filename, write_results_csv
 from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
 from cosy_lite.errors import BopFormatError

@@ -15,8 +15,8 @@ from typing import Any
 
 from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError, CosyLiteError
-from cosy_lite.model_files.loaders import PoseModel
 from cosy_lite.inference.starts import TEMPLATE_STARTS
+from cosy_lite.model_files.loaders import PoseModel
 from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 
 

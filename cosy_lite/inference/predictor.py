@@ -43,18 +43,18 @@ from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
 from cosy_lite.inference.detection_filter import DetectionFilter
 from cosy_lite.inference.network_runtime import PRECISIONS as NETWORK_PRECISIONS
 from cosy_lite.inference.network_runtime import Clock, TimedRenderer, flush_denormals, inference_net, timed_net
-from cosy_lite.inference.object_models import (SetupError, object_models, objects_and_renderer, render_shading,
-                                               start_templates)
+from cosy_lite.inference.object_models import SetupError, object_models, objects_and_renderer, render_shading, start_templates
 from cosy_lite.inference.pose_estimates import TIMING_KEYS, PoseEstimates
 from cosy_lite.inference.settings import InferenceConfig, inference_config, with_refiner
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from cosy_lite.model_files.loaders import PoseModel, load_detector, load_pose_model
+from cosy_lite.models.appearance_templates import AppearanceTemplates
+
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
 # has rendered crashes the process.
 from cosy_lite.models.detector import detect
 from cosy_lite.models.initial_pose import initial_pose_from_boxes
 from cosy_lite.models.render_and_compare import iterate_poses, refine_and_score
-from cosy_lite.models.appearance_templates import AppearanceTemplates
 from cosy_lite.models.silhouette_templates import SilhouetteTemplates
 
 __all__ = ["Predictor", "PoseEstimates", "SetupError", "STARTS", "TIMING_KEYS"]

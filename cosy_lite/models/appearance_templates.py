@@ -35,8 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from cosy_lite.models.silhouette_templates import (BOX_MARGIN, TEMPLATE_SIZE, MaskView, SilhouetteTemplates,
-                                                   file_key, mask_boxes)
+from cosy_lite.models.silhouette_templates import BOX_MARGIN, TEMPLATE_SIZE, MaskView, SilhouetteTemplates, file_key, mask_boxes
 
 CROP_SIZE = 64  # px: the square each template and detection is described at
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

@@ -24,7 +24,6 @@ from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG, rotation_erro
 from cosy_lite.inference.settings import InferenceConfig
 
 
-
 def score_start(dataset_root: str | Path, start: str = "appearance", n_candidates: int = InferenceConfig.n_candidates,
                 refiner: str | Path | None = None, split: str = "test", min_visib: float = 0.5, n: int | None = None,
                 templates_cache: str | Path | None = None, seed: int = 0, progress: bool = True,
@@ -38,8 +37,8 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.errors import CosyLiteError
     from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer, start_templates
-    from cosy_lite.models.appearance_templates import textured_obj_ids
     from cosy_lite.model_files.loaders import load_pose_model, load_scorer
+    from cosy_lite.models.appearance_templates import textured_obj_ids
     from cosy_lite.models.render_and_compare import refine_and_score
 
     if n_candidates > 1 and refiner is None:

@@ -99,7 +99,7 @@ def write_custom_models(models_dir: str | Path, units: str, out_root: str | Path
     Deterministic; files whose content would not change are not rewritten. Returns {obj_id: ModelInfo}
     in metres as read back from the written ``models_info.json``.
     """
-    from cosy_lite.synth.objects import write_if_changed, model_info, ply_bytes
+    from cosy_lite.synth.objects import model_info, ply_bytes, write_if_changed
 
     out_root = Path(out_root)
     meshes = find_meshes(models_dir)

@@ -22,8 +22,8 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.gt_info import compute_gt_info, projected_bbox
-from cosy_lite.synth.distractors import DISTRACTORS, load_distractor_mesh
 from cosy_lite.synth.cameras import CameraConfig, sample_camera_poses, ycbv_intrinsics
+from cosy_lite.synth.distractors import DISTRACTORS, load_distractor_mesh
 from cosy_lite.synth.layout import LayoutConfig, prepare_collision_shape, settle_objects
 from cosy_lite.synth.scene_render import LightingConfig, PlacedMesh, SceneRenderer
 

@@ -30,6 +30,7 @@ from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
 from cosy_lite.train.start_observations import StartObservations, cache_key, observe_all
 
+
 @dataclass
 class ScorerDataConfig:
     split: str = "train_pbr"
