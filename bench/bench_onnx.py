@@ -104,8 +104,8 @@ def forward_table(nets, batches: list[int], warmup: int, repeat: int) -> list[st
             x = torch.rand(b, 6, *crop, generator=torch.Generator().manual_seed(b))
             x_cl = x.contiguous(memory_format=torch.channels_last)
             x_np = x.numpy()
-            calls = {"eager": lambda: net(x), "pipeline": lambda: fast(x_cl)}
-            calls.update({name: (lambda s=s: s.run(x_np)) for name, s in sessions.items()})
+            calls = {"eager": lambda net=net, x=x: net(x), "pipeline": lambda fast=fast, x_cl=x_cl: fast(x_cl)}
+            calls.update({name: (lambda s=s, x_np=x_np: s.run(x_np)) for name, s in sessions.items()})
             with torch.inference_mode():
                 t = {k: _median_ms(v) for k, v in _round_robin(calls, warmup, repeat).items()}
             diff = "-"

@@ -107,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
             return float(np.mean(np.array(errs) < 0.1 * diam.numpy()))
 
         print("\n2. coarse from GT visible boxes, then the refiner: MSSD recall at 0.1 diameter")
-        for name, T in [("box init", TCO_box), ("coarse", TCO_coarse)] + [(f"+ refiner x{i + 1}", p) for i, p in enumerate(refined)]:
+        stages = [("box init", TCO_box), ("coarse", TCO_coarse)] + [(f"+ refiner x{i + 1}", p) for i, p in enumerate(refined)]
+        for name, T in stages:
             print(f"{name:16s} {recall(T):.3f}")
     return 0
 

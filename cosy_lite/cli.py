@@ -24,9 +24,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-results": ("cosy_lite.bop.command_check_results", "Validate a BOP19 results CSV"),
     "eval": ("cosy_lite.eval.command", "Score a BOP19 results CSV (VSD, MSSD, MSPD, AR)"),
     "predict": ("cosy_lite.inference.command_predict", "One image in: detections + 6D poses out (JSON, BOP19 CSV rows, overlay)"),
-    "templates": ("cosy_lite.inference.command_templates", "Render the silhouette templates of objects into a cache folder (infer --templates-cache)"),
+    "templates": (
+        "cosy_lite.inference.command_templates",
+        "Render the silhouette templates of objects into a cache folder (infer --templates-cache)",
+    ),
     "score-refiner": ("cosy_lite.reference.score_refiner", "A refiner's median pose errors on held-out instances, per iteration"),
-    "score-start": ("cosy_lite.reference.score_start", "How often the start stage is within 30 deg of GT (GT masks, held-out instances)"),
+    "score-start": (
+        "cosy_lite.reference.score_start",
+        "How often the start stage is within 30 deg of GT (GT masks, held-out instances)",
+    ),
     "export": ("cosy_lite.export.command", "Export detector / coarse / refiner checkpoints to ONNX (+ manifest.json)"),
 }
 

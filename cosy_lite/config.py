@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, overload
 
 import yaml
 from omegaconf import DictConfig, OmegaConf
@@ -84,6 +84,12 @@ def _merged(cfg: DictConfig, data: Any, where: str | Path) -> DictConfig:
         raise ConfigError(where, key or _failing_key(cfg, OmegaConf.create(data)), msg) from None
 
 
+@overload
+def load_config(cls: type[T], yaml_path: str | Path | None = None, overrides: list[str] | None = None,
+                layers: list[tuple[str, Any]] | None = None) -> T: ...
+@overload
+def load_config(cls: T, yaml_path: str | Path | None = None, overrides: list[str] | None = None,
+                layers: list[tuple[str, Any]] | None = None) -> T: ...
 def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides: list[str] | None = None,
                 layers: list[tuple[str, Any]] | None = None) -> T:
     """Build a ``cls`` instance: dataclass defaults <- ``layers`` (``(source, mapping)`` pairs, e.g. the

@@ -41,6 +41,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypedDict
 
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 
@@ -60,10 +61,22 @@ SHORT_OVERRIDES = {"detector": ["optim.warmup_steps=10", "loop.val_every=1000", 
                    "coarse": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10", "data.val_instances=32"],
                    "refiner": ["optim.warmup_steps=10", "loop.val_every=1000", "data.val_images=10", "data.val_instances=32",
                                "val_iterations=1"]}
+
+
+class QuickSettings(TypedDict):
+    """Type of :data:`QUICK`: its folders and sizes."""
+
+    data_root: Path
+    runs: Path
+    out: Path
+    short_train_images: int
+    vis: int
+
+
 # --quick (a smoke test: its numbers say nothing about the method): its own folders, 2 test images and
 # 8 training images of 4 objects each (one layout per split), overlays of 1 image, and ...
-QUICK = {"data_root": Path("data") / "quick", "runs": Path("runs") / "demo-quick", "out": Path("outputs") / "quick",
-         "short_train_images": 8, "vis": 1}
+QUICK: QuickSettings = {"data_root": Path("data") / "quick", "runs": Path("runs") / "demo-quick",
+                        "out": Path("outputs") / "quick", "short_train_images": 8, "vis": 1}
 QUICK_GENERATE = ["test.n_images=2", "test.views_per_layout=2", f"train.views_per_layout={QUICK['short_train_images']}",
                   "objects_per_layout=[4,4]", "distractors_per_layout=[0,1]"]
 # ... 2 training steps of batch 2 per network, validated on 2 images (after the demo's own overrides: these win)
@@ -524,9 +537,10 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.model_files.reference_models import reference_models
 
     if args.dataset in RENAMED_DATASETS:
-        raise BopFormatError((args.data_root or DemoConfig.data_root) / args.dataset, "--dataset", renamed_dataset_message(args.dataset)
-                             + f": use --dataset {RENAMED_DATASETS[args.dataset]}")
-    defaults = QUICK if args.quick else {"data_root": DemoConfig.data_root, "runs": DemoConfig.runs, "out": DemoConfig.out}
+        raise BopFormatError((args.data_root or DemoConfig.data_root) / args.dataset, "--dataset",
+                             renamed_dataset_message(args.dataset) + f": use --dataset {RENAMED_DATASETS[args.dataset]}")
+    defaults: dict[str, Path] = ({"data_root": QUICK["data_root"], "runs": QUICK["runs"], "out": QUICK["out"]} if args.quick
+                                 else {"data_root": DemoConfig.data_root, "runs": DemoConfig.runs, "out": DemoConfig.out})
     data_root = args.data_root if args.data_root is not None else defaults["data_root"]
     runs = args.runs if args.runs is not None else defaults["runs"]
     out = args.out if args.out is not None else defaults["out"]

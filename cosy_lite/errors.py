@@ -75,7 +75,8 @@ def describe_os_error(e: OSError) -> str:
 
 
 def _subclass_names(cls: type) -> set[str]:
-    return {cls.__name__}.union(*(_subclass_names(c) for c in cls.__subclasses__()))
+    subclasses: list[type] = cls.__subclasses__()
+    return {cls.__name__}.union(*(_subclass_names(c) for c in subclasses))
 
 
 def worker_error_message(e: BaseException) -> str | None:

@@ -151,7 +151,8 @@ def check_bundle(wheels: list[Wheel], image: frozenset[str] = IMAGE_PACKAGES, tr
     for w in wheels:
         for req in w.requires:
             if req not in names and req not in image and req not in LEFT_OUT:
-                problems.append(f"{w.path.name}: field 'Requires-Dist' needs {req}, which is neither in the bundle nor in the image")
+                problems.append(f"{w.path.name}: field 'Requires-Dist' needs {req}, which is neither in the bundle nor in "
+                                "the image")
     total = sum(w.mib for w in wheels) + tree
     if total > limit:
         problems.append(f"bundle {sum(w.mib for w in wheels):.1f} MiB + working tree {tree:.1f} MiB = {total:.1f} MiB "

@@ -51,7 +51,7 @@ def test_appearance_picks_the_upright_box_and_silhouettes_cannot(scene):
     renderer, upright, flipped, diameter = scene
     sil, app = _matcher(renderer, [upright, flipped], diameter)
     assert sil.appearance is app  # attached: match ranks by appearance when given the image
-    for truth, other in ((upright, flipped), (flipped, upright)):
+    for truth in (upright, flipped):
         rgb, mask, T = _image(renderer, truth)
         view = sil.observe(mask, _box(mask), K)
         iou = sil.silhouette_iou(sil.templates(CRACKER_BOX), view.grid)

@@ -23,7 +23,8 @@ H, W = 120, 160
 OBJ_IDS = (1, 2, 5)
 COLOURS = {1: (1.0, 0.0, 0.0), 2: (0.0, 1.0, 0.0), 5: (0.0, 0.0, 1.0)}
 # Small, fast settings: 120x160 images kept at their size, few proposals, narrow FPN.
-SMALL = dict(name="maskrcnn_resnet18_fpn", fpn_channels=64, mask_head_channels=64, box_head_size=256, min_size=H, max_size=W, rpn_pre_nms_top_n_train=200, rpn_post_nms_top_n_train=100,
+SMALL = dict(name="maskrcnn_resnet18_fpn", fpn_channels=64, mask_head_channels=64, box_head_size=256, min_size=H, max_size=W,
+             rpn_pre_nms_top_n_train=200, rpn_post_nms_top_n_train=100,
              rpn_pre_nms_top_n_test=50, rpn_post_nms_top_n_test=20, box_batch_size_per_image=64)
 
 

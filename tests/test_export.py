@@ -22,7 +22,7 @@ onnx = pytest.importorskip("onnx")
 from cosy_lite.export.manifest import Manifest, OnnxModelError  # noqa: E402
 from cosy_lite.export.onnx_export import export_detector, export_pose_net  # noqa: E402
 from cosy_lite.export.onnx_models import OnnxDetector, OnnxPoseNet  # noqa: E402
-from cosy_lite.inference.settings import InferenceConfig
+from cosy_lite.inference.settings import InferenceConfig  # noqa: E402
 from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
 
 OBJ_IDS = [1, 2, 5, 8]  # the tiny synthetic dataset's objects

@@ -142,9 +142,11 @@ def test_icp_run_also_writes_its_poses_before_icp(tiny_synth_root, ckpts, tmp_pa
     ds = BopDataset(tiny_synth_root)
     kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds)
     loose = IcpConfig(max_rotation_deg=180.0, max_translation=1.0, min_fitness=0.0, max_inlier_rmse=1.0)
-    run_on_split(Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1)), ds, tmp_path / "rgb", method="rgb", detections="oracle",
+    rgb_only = InferenceConfig(n_refiner_iterations=1)
+    with_icp = InferenceConfig(n_refiner_iterations=1, icp=True, icp_settings=loose)
+    run_on_split(Predictor.from_checkpoints(**kw, config=rgb_only), ds, tmp_path / "rgb", method="rgb", detections="oracle",
                  progress=False)
-    s = run_on_split(Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1, icp=True, icp_settings=loose)), ds, tmp_path / "both",
+    s = run_on_split(Predictor.from_checkpoints(**kw, config=with_icp), ds, tmp_path / "both",
                      method="icp", detections="oracle", progress=False, method_before_icp="rgb")
     assert s.ok and s.icp_accepted > 0 and s.csv_before_icp == tmp_path / "both" / "rgb_tiny-test.csv"
     alone = read_results_csv(tmp_path / "rgb" / "rgb_tiny-test.csv")

@@ -21,7 +21,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-BUILD_INPUTS = ("pyproject.toml", "README.md", "cosy_lite", "configs", "models")  # what the wheel is built from (configs/: the profiles; models/: the reference models)
+# what the wheel is built from (configs/: the profiles; models/: the reference models)
+BUILD_INPUTS = ("pyproject.toml", "README.md", "cosy_lite", "configs", "models")
 SMALL_REFINER = ["loop.steps=2", "loop.batch_size=2", "loop.num_workers=0", "loop.device=cpu", "loop.log_every=1",
                  "data.val_images=1", "data.val_instances=2", "data.n_points=300", "net.arch=early",
                  "net.backbone=resnet18", "net.crop_resolution=[60,80]", "optim.warmup_steps=1"]

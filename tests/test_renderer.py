@@ -370,7 +370,8 @@ def test_headlight_shading_follows_the_face_orientation(meshes):
 
     head_on, turned = _T(t=(0.0, 0.0, 0.7)), _T(_rot("y", 60.0), t=(0.0, 0.0, 0.7))
     with PyrenderRenderer({BOX: meshes[BOX]}) as flat, PyrenderRenderer({BOX: meshes[BOX]}, shading="headlight") as lit:
-        a, b = flat.render([BOX, BOX], np.stack([head_on, turned]), K, RES), lit.render([BOX, BOX], np.stack([head_on, turned]), K, RES)
+        poses = np.stack([head_on, turned])
+        a, b = flat.render([BOX, BOX], poses, K, RES), lit.render([BOX, BOX], poses, K, RES)
     np.testing.assert_array_equal(a.depth, b.depth)
     m = b.mask[0]
     np.testing.assert_allclose(b.rgb[0][m].mean(0), BOX_RGBA[:3], atol=1.5)  # normal . view ~ 1 at the centre

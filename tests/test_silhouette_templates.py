@@ -51,7 +51,8 @@ def scene():
     meshes = _meshes()
     renderer = PyrenderRenderer(meshes=meshes)
     ids = [1, 2, 1, 1]
-    t = np.array([[0.0, 0.0, 0.6], [0.13, -0.08, 0.7], [-0.17, 0.1, 0.65], [0.1, 0.08, 0.55]])  # 0-17 deg off-axis, inside the image
+    # 0-17 deg off-axis, inside the image
+    t = np.array([[0.0, 0.0, 0.6], [0.13, -0.08, 0.7], [-0.17, 0.1, 0.65], [0.1, 0.08, 0.55]])
     R_allo = random_rotations(len(ids), seed=11)
     T_true = np.tile(np.eye(4), (len(ids), 1, 1))
     T_true[:, :3, 3] = t
@@ -201,7 +202,8 @@ def test_candidates_are_chosen_alike_by_the_torch_and_the_onnx_backend(scene, tm
     with torch.no_grad():
         _, conf = refine_and_score(net, torch.from_numpy(image).permute(2, 0, 1)[None].float().div(255).expand(12, -1, -1, -1),
                                    torch.from_numpy(K).float().expand(12, 3, 3), flat, np.repeat(scene["ids"], 3).tolist(),
-                                   p.objects.points[p.objects.index(np.repeat(scene["ids"], 3).tolist())], scene["renderer"], CROP)
+                                   p.objects.points[p.objects.index(np.repeat(scene["ids"], 3).tolist())], scene["renderer"],
+                                   CROP)
     best = candidates[np.arange(4), conf.view(4, 3).argmax(dim=1).numpy()]
     assert float(conf.view(4, 3).std(dim=1).min()) > 0  # the candidates are told apart
     np.testing.assert_allclose(poses["torch"].TCO_coarse.numpy(), best, atol=1e-5)

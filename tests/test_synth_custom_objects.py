@@ -40,7 +40,8 @@ def test_object_ids_and_units(meshes, tmp_path):
     with pytest.raises(BopFormatError, match=r"diameter 123.3 m = 123.3 m is implausible.*with --units mm it would be 0.1233 m"):
         load_user_mesh(meshes / "a_box.ply", "m")
     trimesh.creation.box(extents=(0.1, 0.06, 0.04)).export(tmp_path / "small.ply")
-    with pytest.raises(BopFormatError, match=r"diameter 0.1233 mm = 0.0001233 m is implausible.*with --units m it would be 0.1233 m"):
+    with pytest.raises(BopFormatError,
+                       match=r"diameter 0.1233 mm = 0.0001233 m is implausible.*with --units m it would be 0.1233 m"):
         load_user_mesh(tmp_path / "small.ply", "mm")
     named = tmp_path / "named"
     named.mkdir()

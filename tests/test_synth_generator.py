@@ -87,7 +87,7 @@ def test_gt_rerendered_matches_stored_masks(tiny_root: Path):
             depth_gt = _pyrender_depths(renderer, meshes, [g.obj_id for g in rec.gt], np.stack([g.TCO for g in rec.gt]),
                                         rec.camera.K)
             dist_im = depth_to_distance(depth_im, rec.camera.K)
-            for k, (g, info) in enumerate(zip(rec.gt, rec.gt_info)):
+            for k, info in enumerate(rec.gt_info):
                 mask = io.load_mask(ds.mask_path(split, rec.scene_id, rec.im_id, k))
                 visib = io.load_mask(ds.mask_path(split, rec.scene_id, rec.im_id, k, visib=True))
                 assert not np.any(visib & ~mask), "visible mask must lie inside the full mask"

@@ -22,7 +22,8 @@ from cosy_lite.synth.layout import (
 BOX = (0.10, 0.06, 0.20)  # metres
 
 
-def _offset(mesh: trimesh.Trimesh, axis: tuple[float, float, float], angle: float, t: tuple[float, float, float]) -> trimesh.Trimesh:
+def _offset(mesh: trimesh.Trimesh, axis: tuple[float, float, float], angle: float,
+            t: tuple[float, float, float]) -> trimesh.Trimesh:
     """The mesh moved off its own origin, so object frame != centre-of-mass frame."""
     m = mesh.copy()
     m.apply_transform(make_T(rotation_about_axis(np.array(axis), angle), np.array(t)))

@@ -9,13 +9,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.bop.params import DatasetParams, SplitParams, dataset_name_of, get_dataset_params
 from cosy_lite.errors import BopFormatError
+
+if TYPE_CHECKING:
+    import trimesh
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
@@ -86,7 +89,7 @@ class BopDataset:
         self._check_obj_id(obj_id)
         return (self.models_eval_dir if eval else self.models_dir) / f"obj_{obj_id:06d}.ply"
 
-    def load_model(self, obj_id: int, eval: bool = False):
+    def load_model(self, obj_id: int, eval: bool = False) -> trimesh.Trimesh:
         """trimesh.Trimesh in metres (``eval=True``: from ``models_eval/``)."""
         return io.load_model(self.model_path(obj_id, eval))
 
@@ -109,14 +112,20 @@ class BopDataset:
         return sorted(int(p.name) for p in d.iterdir() if p.is_dir() and p.name.isdigit())
 
     def available_splits(self) -> list[str]:
-        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(("models", "."))) if self.root.is_dir() else []
+        if not self.root.is_dir():
+            return []
+        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(("models", ".")))
 
     def scene_camera(self, split: str, scene_id: int) -> dict[int, io.CameraRecord]:
-        return self._cached(("cam", split, scene_id), lambda: io.load_scene_camera(self.scene_dir(split, scene_id) / "scene_camera.json"))
+        return self._cached(
+            ("cam", split, scene_id), lambda: io.load_scene_camera(self.scene_dir(split, scene_id) / "scene_camera.json")
+        )
 
     def scene_gt(self, split: str, scene_id: int) -> dict[int, list[io.GtPose]]:
         valid = set(self.obj_ids)
-        return self._cached(("gt", split, scene_id), lambda: io.load_scene_gt(self.scene_dir(split, scene_id) / "scene_gt.json", valid))
+        return self._cached(
+            ("gt", split, scene_id), lambda: io.load_scene_gt(self.scene_dir(split, scene_id) / "scene_gt.json", valid)
+        )
 
     def scene_gt_info(self, split: str, scene_id: int) -> dict[int, list[io.GtInfo]] | None:
         path = self.scene_dir(split, scene_id) / "scene_gt_info.json"

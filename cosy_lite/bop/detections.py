@@ -233,7 +233,11 @@ def _image_detections(path: Path, entries: list[tuple[int, _Entry]], with_masks:
     entries = sorted(entries, key=lambda ie: -ie[1].score)
     boxes = []
     for _, e in entries:
-        boxes.append(e.bbox if e.bbox is not None else mask_util.toBbox(compressed_rle(e.segmentation)).tolist())
+        if e.bbox is not None:
+            boxes.append(e.bbox)
+        else:
+            assert e.segmentation is not None  # _parse_entry rejects an entry with neither
+            boxes.append(mask_util.toBbox(compressed_rle(e.segmentation)).tolist())
     masks = None
     if with_masks:
         arrays = []

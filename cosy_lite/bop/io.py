@@ -13,12 +13,15 @@ import tempfile
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import cv2
 import numpy as np
 
 from cosy_lite.errors import BopFormatError
+
+if TYPE_CHECKING:
+    import trimesh
 
 MM = 1e-3  # metres per millimetre
 MM_PER_M = 1000.0  # multiply (not divide by MM) so 0.3 m is written as 300.0
@@ -300,7 +303,7 @@ def faces_problem(faces: np.ndarray, n_vertices: int) -> str | None:
     return None
 
 
-def load_model(path: str | Path):
+def load_model(path: str | Path) -> trimesh.Trimesh:
     """Load a BOP model (PLY in mm, optional texture) as a ``trimesh.Trimesh`` in metres."""
     import trimesh
 
@@ -308,7 +311,8 @@ def load_model(path: str | Path):
     if not path.is_file():
         raise BopFormatError(path, "", "model file not found")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        # force="mesh" returns a Trimesh (a scene's geometries concatenated); trimesh types it as Geometry
+        mesh = cast(trimesh.Trimesh, trimesh.load(path, force="mesh", process=False))
     except Exception as e:  # trimesh raises many types on bad files
         raise BopFormatError(path, "", f"cannot read mesh ({type(e).__name__}: {e})") from None
     if len(mesh.vertices) == 0:
@@ -337,7 +341,9 @@ def load_scene_camera(path: str | Path) -> dict[int, CameraRecord]:
         im_id = _im_key(path, key)
         K = _numbers(path, f"{key}.cam_K", _get(path, d, "cam_K", key), 9).reshape(3, 3)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-6:
-            raise BopFormatError(path, f"{key}.cam_K", f"not an intrinsic matrix (row-major, fx, fy > 0, K[2,2] = 1): {K.reshape(-1).tolist()}")
+            raise BopFormatError(
+                path, f"{key}.cam_K", f"not an intrinsic matrix (row-major, fx, fy > 0, K[2,2] = 1): {K.reshape(-1).tolist()}"
+            )
         depth_scale = float(_numbers(path, f"{key}.depth_scale", d.get("depth_scale", 1.0), 1)[0])
         if depth_scale <= 0:
             raise BopFormatError(path, f"{key}.depth_scale", f"must be > 0, got {depth_scale}")

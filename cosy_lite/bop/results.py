@@ -280,10 +280,14 @@ def _parse_row(path: Path, n: int, cells: list[str], order: tuple[str, ...]) -> 
         problems.append(BopFormatError(path, f"line {n}: time", f"expected seconds >= 0 or -1 (unknown), got {time[0]}"))
     if problems:
         return ResultRow(n, None, problems)
+    # every parser that returned None (and every value set to None above) added a problem
+    scene_id, im_id, obj_id = ids["scene_id"], ids["im_id"], ids["obj_id"]
+    assert scene_id is not None and im_id is not None and obj_id is not None
+    assert score is not None and R is not None and t is not None and time is not None
     TCO = np.eye(4)
     TCO[:3, :3] = R.reshape(3, 3)
     TCO[:3, 3] = t / 1000.0
-    return ResultRow(n, PoseEstimate(ids["scene_id"], ids["im_id"], ids["obj_id"], float(score[0]), TCO, float(time[0])), [])
+    return ResultRow(n, PoseEstimate(scene_id, im_id, obj_id, float(score[0]), TCO, float(time[0])), [])
 
 
 def _header_order(path: Path, line: str) -> tuple[tuple[str, ...] | None, list[BopFormatError]]:
@@ -340,12 +344,12 @@ def parse_results_csv(path: str | Path) -> Iterator[ResultRow]:
                 path, f"line {n}: row", f"expected {len(COLUMNS)} comma-separated columns ({HEADER}), got {len(cells)}")])
             continue
         row = _parse_row(path, n, cells, order)
-        if (e := row.estimate) is not None:
-            t0, n0 = times.setdefault((e.scene_id, e.im_id), (e.time, n))
-            if abs(e.time - t0) > TIME_TOL:
+        if (est := row.estimate) is not None:
+            t0, n0 = times.setdefault((est.scene_id, est.im_id), (est.time, n))
+            if abs(est.time - t0) > TIME_TOL:
                 late.append(ResultRow(n, None, [BopFormatError(
                     path, f"line {n}: time",
-                    f"scene {e.scene_id} image {e.im_id}: time {e.time} differs from {t0} on line {n0}; "
+                    f"scene {est.scene_id} image {est.im_id}: time {est.time} differs from {t0} on line {n0}; "
                     "BOP expects the same time on every line of an image")]))
         yield row
     yield from late
@@ -357,5 +361,6 @@ def read_results_csv(path: str | Path) -> list[PoseEstimate]:
     for row in parse_results_csv(path):
         if row.problems:
             raise row.problems[0]
+        assert row.estimate is not None  # parse_results_csv yields no estimate only with problems
         out.append(row.estimate)
     return out

@@ -12,7 +12,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Literal, cast
 
 import numpy as np
 
@@ -114,8 +114,10 @@ def _raw_diameters(info_path: Path) -> dict[int, float | None] | None:
         if not key.isdigit():
             continue
         v = d.get("diameter") if isinstance(d, dict) else None
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-        out[int(key)] = float(v) if ok else None
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
+            out[int(key)] = float(v)
+        else:
+            out[int(key)] = None
     return out or None
 
 
@@ -123,7 +125,8 @@ def _check_model_file(ply: Path, info_path: Path, obj_id: int, diameter_mm: floa
     import trimesh
 
     try:
-        mesh = trimesh.load(ply, force="mesh", process=False)
+        # force="mesh" returns a Trimesh; trimesh types it as Geometry
+        mesh = cast(trimesh.Trimesh, trimesh.load(ply, force="mesh", process=False))
         v = np.asarray(mesh.vertices, dtype=np.float64)
         faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
     except Exception as e:  # trimesh raises many types on bad files
@@ -159,8 +162,9 @@ def _check_models(root: Path, params: DatasetParams | None, out: _Collector) -> 
     """Check models_info.json and the model files; return the obj ids (None if unknown)."""
     info_path = root / "models" / "models_info.json"
     infos = out.load(io.load_models_info, info_path)
+    diameters: dict[int, float | None] | None
     if infos is not None:
-        diameters: dict[int, float | None] | None = {i: m.diameter / io.MM for i, m in infos.items()}
+        diameters = {i: m.diameter / io.MM for i, m in infos.items()}
     else:
         diameters = _raw_diameters(info_path)
         if diameters is None:
@@ -476,6 +480,7 @@ def _check_result_ids(
     reported: set[tuple] = set()
     for row in rows:
         e, n = row.estimate, row.line
+        assert e is not None  # check_results passes only rows with an estimate
         if infos is not None and e.obj_id not in infos and ("obj", e.obj_id) not in reported:
             reported.add(("obj", e.obj_id))
             out.error(csv_path, f"line {n}: obj_id", f"obj_id {e.obj_id} is not in {info_path} (known: {sorted(infos)})")
@@ -510,6 +515,8 @@ def check_results(
     """
     path = Path(csv_path)
     out = _Collector()
+    file_dataset: str | None
+    file_split: str | None
     try:
         _, file_dataset, file_split = parse_results_filename(path)
     except BopFormatError as e:
@@ -553,6 +560,7 @@ def check_results(
         out.warning(path, f"line {n_lines}: row", "newline after the last line (the BOP toolkit writes none)")
     first: dict[str, int] = {}
     for row in rows:
+        assert row.estimate is not None  # rows keeps only the rows with an estimate
         if (n0 := first.setdefault(format_estimate(row.estimate), row.line)) != row.line:
             out.warning(path, f"line {row.line}: row", f"identical to line {n0}")
     if root is not None:

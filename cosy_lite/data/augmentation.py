@@ -169,11 +169,11 @@ class StrongAugmentation:
             p = getattr(self.cfg, field)
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"AugmentationConfig.{field}: probability must be in [0, 1], got {p}")
-        for _, _, field in PHOTOMETRIC_OPS.values():
-            if field is not None:
-                lo, hi = getattr(self.cfg, field)
+        for _, _, range_field in PHOTOMETRIC_OPS.values():
+            if range_field is not None:
+                lo, hi = getattr(self.cfg, range_field)
                 if not 0.0 <= lo <= hi:
-                    raise ValueError(f"AugmentationConfig.{field}: need 0 <= low <= high, got ({lo}, {hi})")
+                    raise ValueError(f"AugmentationConfig.{range_field}: need 0 <= low <= high, got ({lo}, {hi})")
         if self.cfg.blur_sigma[0] < 1:
             raise ValueError(f"AugmentationConfig.blur_sigma: the smallest sigma must be >= 1 px, got {self.cfg.blur_sigma}")
 

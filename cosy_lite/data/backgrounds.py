@@ -101,7 +101,7 @@ def gradient(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 def shapes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     """Random filled/outlined rectangles, ellipses, lines and polygons on a random colour."""
-    im = np.empty((h, w, 3), np.uint8)
+    im: np.ndarray = np.empty((h, w, 3), np.uint8)
     im[:] = _colours(rng, 1)[0].astype(np.uint8)
     s = max(h, w)
     for _ in range(int(rng.integers(8, 40))):
@@ -191,7 +191,9 @@ class BackgroundPool:
         """The photos, loaded on first use."""
         if self._photos is None:
             self._photos = load_skimage_photos(self.photo_names)
-            self._gray = [bool(np.array_equal(p[..., 0], p[..., 1]) and np.array_equal(p[..., 1], p[..., 2])) for p in self._photos]
+            self._gray = [
+                bool(np.array_equal(p[..., 0], p[..., 1]) and np.array_equal(p[..., 1], p[..., 2])) for p in self._photos
+            ]
         return self._photos
 
     def sample_numpy(self, height: int, width: int, rng: np.random.Generator | None = None) -> np.ndarray:

@@ -8,7 +8,7 @@ masks, and the by-image train/validation split.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, TypeVar
+from typing import Protocol, TypeVar, overload
 
 import numpy as np
 
@@ -96,6 +96,12 @@ def scan_split(dataset: BopDataset, split: str, scene_ids: list[int] | None = No
     )
 
 
+@overload
+def check_obj_ids(dataset: BopDataset, obj_ids: list[int]) -> list[int]: ...
+@overload
+def check_obj_ids(dataset: BopDataset, obj_ids: None) -> None: ...
+@overload
+def check_obj_ids(dataset: BopDataset, obj_ids: list[int] | None) -> list[int] | None: ...
 def check_obj_ids(dataset: BopDataset, obj_ids: list[int] | None) -> list[int] | None:
     """``obj_ids`` as a sorted list, each checked against ``models_info.json`` (None stays None)."""
     if obj_ids is None:
@@ -157,6 +163,7 @@ def split_train_val(dataset: D, val_fraction: float | None = None, n_val_images:
             raise ValueError(f"split_train_val: val_fraction must be in [0, 1), got {val_fraction}")
         n_val = max(1, round(val_fraction * len(keys))) if val_fraction > 0 else 0
     else:
+        assert n_val_images is not None  # exactly one of the two is given (checked above)
         n_val = int(n_val_images)
     if not 0 <= n_val < len(keys):
         raise ValueError(f"split_train_val: cannot hold out {n_val} of {len(keys)} images and keep some for training")

@@ -12,6 +12,7 @@ object. Unannotated things (distractors) count as background, as in CosyPose.
 from __future__ import annotations
 
 import copy
+from typing import cast
 
 import numpy as np
 import torch
@@ -92,7 +93,7 @@ class PoseDataset(Dataset):
         else:
             rgb = load_rgb(self.dataset, self.split, scene_id, im_id)
             masks = load_masks(self.dataset, self.split, scene_id, im_id, list(range(int(t.n_gt[row]))), rgb.shape[:2])
-            mask, any_mask = masks[gt_idx], masks.any(axis=0)
+            mask, any_mask = masks[gt_idx], cast(np.ndarray, masks.any(axis=0))  # [H,W] bool: axis given, never a scalar
         rgb_t = torch.from_numpy(rgb).permute(2, 0, 1).contiguous()
         mask_any = torch.from_numpy(any_mask)
         if self.augmentation is not None:

@@ -76,7 +76,9 @@ def coco_ground_truth(dataset, records: Iterable, bbox_type: str = "modal") -> t
     """
     if bbox_type not in BBOX_TYPES:
         raise ValueError(f"bbox_type {bbox_type!r} unknown; use one of {BBOX_TYPES}")
-    images, annotations, index = [], [], {}
+    images: list[dict[str, Any]] = []
+    annotations: list[dict[str, Any]] = []
+    index: dict[ImageKey, int] = {}
     for rec in records:
         if rec.gt_info is None:
             raise ValueError(f"{dataset.scene_dir(rec.split, rec.scene_id) / 'scene_gt_info.json'}: needed for detection AP")

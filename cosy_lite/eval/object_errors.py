@@ -208,6 +208,7 @@ class ObjectErrors:
             if cap is not None and self._adi_beyond(q, self.samples @ M[:3, :3].T + M[:3, 3], cap):
                 out[i] = np.inf
                 continue
+            assert self.tree is not None, "ObjectErrors needs its k-d tree: build it with from_model"
             dist, _ = self.tree.query(q, k=1)
             out[i] = dist.mean()
         return out
@@ -219,6 +220,7 @@ class ObjectErrors:
             return True
         if len(self.samples) == 0:
             return False
+        assert self.tree is not None, "ObjectErrors needs its k-d tree: build it with from_model"
         d, _ = self.tree.query(q_samples, k=1)
         lower = d[self.nearest_sample] - self.sample_dist * (1.0 + 1e-9) - 1e-12
         return bool(np.maximum(lower, 0.0).mean() >= cap)

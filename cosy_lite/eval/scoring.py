@@ -223,7 +223,7 @@ def score_targets(
             continue
         valid_idx = np.nonzero(t.gt_valid)[0]
         for name, errs in (("add_s", t.adi if o in symmetric_obj_ids else t.add), ("adi", t.adi)):
-            m = match_greedy(errs, t.gt_valid, [AUC_MAX_M])[0]  # errors >= 10 cm add nothing to the AUC
+            m = match_greedy(errs, t.gt_valid, np.array([AUC_MAX_M]))[0]  # errors >= 10 cm add nothing to the AUC
             auc_err[name][o] += [float(errs[m[g], g]) if m[g] >= 0 else np.inf for g in valid_idx]
 
     def auc_of(errors: list[float]) -> float | None:

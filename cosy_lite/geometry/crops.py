@@ -23,7 +23,7 @@ contain another box (e.g. a detection).
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, cast
 
 import torch
 from torch import Tensor
@@ -168,4 +168,4 @@ def crop_images(
         raise ValueError(f"mode must be one of {sorted(CROP_MODES)}, got {mode!r}")
     _check("images", images, (None, None, None, None))
     _check("boxes", boxes, (images.shape[0], 4))
-    return CROP_MODES[mode](images, boxes, tuple(crop_resolution), sampling_ratio)
+    return CROP_MODES[mode](images, boxes, cast(Size, tuple(crop_resolution)), sampling_ratio)

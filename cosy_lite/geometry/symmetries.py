@@ -140,6 +140,7 @@ class _Checker:
             return False
         if self.colors is None:
             return True
+        assert self.point_colors is not None  # set with colors in __init__
         return float(np.linalg.norm(self.point_colors[sl] - self.colors[nn], axis=1).mean()) < self.colour_threshold
 
     def directed(self, T: np.ndarray) -> bool:
@@ -169,7 +170,7 @@ def candidate_frames(vertices: np.ndarray) -> list[np.ndarray]:
     frames: list[np.ndarray] = []
     for F in (np.eye(3), T_obb[:3, :3], vecs.T[::-1]):
         F = F * np.sign(F[np.arange(3), np.argmax(np.abs(F), axis=1)])[:, None]  # deterministic signs
-        near = lambda G: all(np.abs(G @ a).max() > math.cos(math.radians(3.0)) for a in F)  # noqa: E731
+        near = lambda G, F=F: all(np.abs(G @ a).max() > math.cos(math.radians(3.0)) for a in F)  # noqa: E731
         if not any(near(G) for G in frames):
             frames.append(F)
     return frames
@@ -197,7 +198,7 @@ def _close_group(gens: list[np.ndarray], checker: _Checker, max_size: int = 48) 
     elems = [np.eye(4)] + list(gens)
     frontier = list(gens)
     while frontier and len(elems) < max_size:
-        new = []
+        new: list[np.ndarray] = []
         for A in frontier:
             for g in gens:
                 C = g @ A
@@ -247,7 +248,9 @@ def find_symmetries(
             raise ValueError(f"colors must be [N,3] like vertices {V.shape}, got {C.shape}")
     c = (V.min(axis=0) + V.max(axis=0)) / 2.0 if centre is None else np.asarray(centre, dtype=np.float64).reshape(3)
     checker = _Checker(V, symmetry_tolerance(diameter), C, colour_threshold, max_points)
-    frames = candidate_frames(V) if axes is None else [np.array([np.asarray(a, dtype=np.float64) / np.linalg.norm(a) for a in axes])]
+    frames = (
+        candidate_frames(V) if axes is None else [np.array([np.asarray(a, dtype=np.float64) / np.linalg.norm(a) for a in axes])]
+    )
     best: tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]] = (np.zeros((0, 4, 4)), [])
     for F in frames:
         found = _search_axes(list(F), c, checker)
@@ -256,7 +259,9 @@ def find_symmetries(
     return best
 
 
-def _search_axes(axes: list[np.ndarray], c: np.ndarray, checker: _Checker) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+def _search_axes(
+    axes: list[np.ndarray], c: np.ndarray, checker: _Checker
+) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """Symmetries among rotations about ``axes`` through ``c`` (see :func:`find_symmetries`)."""
     # Continuous: every rotation by a multiple of 10 deg passes; angles nearest 180 deg first (they
     # move points the most, so non-symmetric axes fail early).

@@ -7,6 +7,7 @@ object-to-camera (OpenCV camera: x right, y down, z forward); ``K`` is the 3x3 i
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -49,7 +50,7 @@ def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * (Kx @ Kx)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
+def look_at(eye: np.ndarray, target: np.ndarray, up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
     """World-to-camera transform ``T_CW`` (OpenCV camera) for a camera at ``eye`` looking at ``target``."""
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye

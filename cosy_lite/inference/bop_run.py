@@ -21,7 +21,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -40,7 +40,7 @@ from cosy_lite.bop.results import PoseEstimate, results_filename, write_results_
 from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
 from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.icp import icp_rejection_kind
-from cosy_lite.inference.predictor import TIMING_KEYS, Predictor, SetupError
+from cosy_lite.inference.predictor import TIMING_KEYS, PoseEstimates, Predictor, SetupError
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
 
 ORACLE = "oracle"
@@ -205,6 +205,42 @@ def _image_targets(dataset: BopDataset, task: str, predictor: Predictor, detecto
     return list(per_image), {k: (lambda det, c=c: select_top_instances(det, c)) for k, c in per_image.items()}
 
 
+def _image_inputs(dataset: BopDataset, rec: ImageRecord, icp: bool, source: Callable[[Any], Detections | None] | None,
+                  detections: str | Path | None) -> tuple[np.ndarray, np.ndarray | None, Detections | None]:
+    """(rgb, depth (with ICP, when the image has one), the given detections) of one image, their sizes checked."""
+    rgb = dataset.load_rgb(rec)
+    depth = dataset.load_depth(rec) if icp and rec.depth_path is not None else None
+    if depth is not None and depth.shape != rgb.shape[:2]:
+        raise BopFormatError(str(rec.depth_path), "size", f"{depth.shape[1]}x{depth.shape[0]} pixels, but the image "
+                             f"{rec.rgb_path} is {rgb.shape[1]}x{rgb.shape[0]}")
+    given = source(rec) if source is not None else None
+    if given is not None and given.masks is not None and len(given) and given.masks.shape[1:] != rgb.shape[:2]:
+        raise BopFormatError(str(detections), "segmentation.size", (
+            f"masks of scene {rec.scene_id} image {rec.im_id} are {list(given.masks.shape[1:])} (H, W); "
+            f"the image {rec.rgb_path} is {list(rgb.shape[:2])}"))
+    return rgb, depth, given
+
+
+def _count(summary: RunSummary, est: PoseEstimates, n_detections: int, t_image: float, t_detection: float) -> None:
+    """Add one image's times, detections, invalid poses and ICP outcomes to ``summary``."""
+    summary.image_times.append(t_image)
+    timings = dict(est.timings, detection=t_detection)
+    for key in TIMING_KEYS:
+        summary.timings[key] += timings[key] if key != "total" else t_image
+    summary.n_detections += n_detections
+    summary.n_invalid += int((~est.valid).sum())
+    if est.icp is not None:
+        summary.icp_runs += len(est.icp)
+        summary.icp_accepted += sum(r.accepted for r in est.icp)
+        summary.icp_rejections.update(icp_rejection_kind(r.reason) for r in est.icp if not r.accepted)
+
+
+def _rows(est: PoseEstimates, scene_id: int, im_id: int, seconds: float) -> list[PoseEstimate]:
+    """The BOP19 rows of one image's (valid) estimates."""
+    return [PoseEstimate(scene_id, im_id, int(est.obj_ids[i]), float(est.scores[i]), est.TCO[i].numpy(), seconds)
+            for i in range(len(est))]
+
+
 def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path, split: str = "test",
                  method: str = "cosylite", detections: str | Path | None = None, n_vis: int = 0,
                  limit_images: int | None = None, progress: bool = True,
@@ -250,18 +286,8 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     bar = tqdm(keys, desc=f"infer {dataset.name}/{split}", unit="img", disable=None if progress else True)
     for k, (scene_id, im_id) in enumerate(bar):
         rec = dataset.image(split_folder, scene_id, im_id)
-        rgb = dataset.load_rgb(rec)
-        depth = dataset.load_depth(rec) if predictor.config.icp and rec.depth_path is not None else None
-        if predictor.config.icp and depth is None:
-            summary.no_depth += 1
-        if depth is not None and depth.shape != rgb.shape[:2]:
-            raise BopFormatError(rec.depth_path, "size", f"{depth.shape[1]}x{depth.shape[0]} pixels, but the image "
-                                 f"{rec.rgb_path} is {rgb.shape[1]}x{rgb.shape[0]}")
-        given = source(rec) if source is not None else None
-        if given is not None and given.masks is not None and len(given) and given.masks.shape[1:] != rgb.shape[:2]:
-            raise BopFormatError(detections, "segmentation.size", (
-                f"masks of scene {scene_id} image {im_id} are {list(given.masks.shape[1:])} (H, W); "
-                f"the image {rec.rgb_path} is {list(rgb.shape[:2])}"))
+        rgb, depth, given = _image_inputs(dataset, rec, predictor.config.icp, source, detections)
+        summary.no_depth += int(predictor.config.icp and depth is None)
         t0 = time.perf_counter()
         det = given if given is not None else predictor.detect(rgb)
         bad = degenerate_boxes(det)
@@ -272,26 +298,12 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         det = choose[(scene_id, im_id)](predictor.detection_filter(det))
         est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
         t_image = time.perf_counter() - t0 + (max(given.time_s, 0.0) if given is not None else 0.0)
-        summary.image_times.append(t_image)
-        timings = dict(est.timings, detection=max(given.time_s, 0.0) if given is not None else det.time_s)
-        for key in TIMING_KEYS:
-            summary.timings[key] += timings[key] if key != "total" else t_image
-        summary.n_detections += len(det)
-        summary.n_invalid += int((~est.valid).sum())
-        if est.icp is not None:
-            summary.icp_runs += len(est.icp)
-            summary.icp_accepted += sum(r.accepted for r in est.icp)
-            summary.icp_rejections.update(icp_rejection_kind(r.reason) for r in est.icp if not r.accepted)
+        _count(summary, est, len(det), t_image, max(given.time_s, 0.0) if given is not None else det.time_s)
         good = est.only_valid()
-        for i in range(len(good)):
-            estimates.append(PoseEstimate(scene_id, im_id, int(good.obj_ids[i]), float(good.scores[i]),
-                                          good.TCO[i].numpy(), t_image))
+        estimates += _rows(good, scene_id, im_id, t_image)
         if csv_before is not None:
-            before = est.before_icp().only_valid()
-            t_before = t_image - est.timings.get("icp", 0.0)
-            for i in range(len(before)):
-                estimates_before.append(PoseEstimate(scene_id, im_id, int(before.obj_ids[i]), float(before.scores[i]),
-                                                     before.TCO[i].numpy(), t_before))
+            estimates_before += _rows(est.before_icp().only_valid(), scene_id, im_id,
+                                      t_image - est.timings.get("icp", 0.0))
         if k < n_vis:
             name = f"{csv_path.stem}_{scene_id:06d}_{im_id:06d}.png"
             summary.vis_paths.append(_write_overlay(out_dir / "vis" / name, rgb, rec, good, predictor))

@@ -125,10 +125,11 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.synth.command import dataset_folder
 
     use_egl()
-    problem = flag_problem(args) or _argument_problem(args)
-    config = None if problem else _settings(args)
-    problem = problem or _backend_problem(args, config)
-    if problem:
+    if problem := flag_problem(args) or _argument_problem(args):
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
+    config = _settings(args)
+    if problem := _backend_problem(args, config):
         print(f"error: {problem}", file=sys.stderr)
         return 2
     method = args.method.replace("_", "")

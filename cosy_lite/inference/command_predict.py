@@ -224,9 +224,11 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.render.gl import use_egl
 
     use_egl()
-    problem = flag_problem(args) or _argument_problem(args)
-    config = None if problem else _settings(args)
-    if problem := problem or _setup_problem(args, config):
+    if problem := flag_problem(args) or _argument_problem(args):
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
+    config = _settings(args)
+    if problem := _setup_problem(args, config):
         print(f"error: {problem}", file=sys.stderr)
         return 2
     if args.threads is not None:

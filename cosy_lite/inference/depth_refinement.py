@@ -54,11 +54,10 @@ class DepthRefinement:
                                    [ids[i] for i in idx], self.config, syms)
             for i, r in zip(idx, out):
                 results[i] = r
-        for i in range(len(TCO)):
-            if results[i] is None:
-                results[i] = IcpResult(TCO[i].numpy().copy(), False, "invalid pose before ICP")
-        TCO_new = torch.from_numpy(np.stack([r.TCO for r in results])).double()
-        return orthonormalise(TCO_new), results  # type: ignore[return-value]
+        done = [r if r is not None else IcpResult(TCO[i].numpy().copy(), False, "invalid pose before ICP")
+                for i, r in enumerate(results)]
+        TCO_new = torch.from_numpy(np.stack([r.TCO for r in done])).double()
+        return orthonormalise(TCO_new), done
 
     def _inputs(self, depth: np.ndarray, det: Detections, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """(depth [H,W] float32 m, masks [N,H,W] bool: the detections' masks, or their boxes)."""

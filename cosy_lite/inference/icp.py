@@ -35,7 +35,7 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -227,8 +227,8 @@ def _inputs(TCO: Any, K: Any, depth: Any, masks: Any, obj_ids: Sequence[int]) ->
     return TCO, K, depth, masks, obj_ids
 
 
-def _render_windows(renderer: MeshRenderer, obj_ids: list[int], TCO: np.ndarray, K: np.ndarray,
-                    windows: Sequence, todo: list[int]) -> np.ndarray:
+def _render_windows(renderer: MeshRenderer, obj_ids: Sequence[int], TCO: np.ndarray, K: np.ndarray,
+                    windows: Mapping[int, tuple[int, int, int, int]], todo: list[int]) -> np.ndarray:
     """``[len(todo),h,w]`` model depth of objects ``todo`` in their windows (x0, y0, x1, y1), one
     batched render at the largest window's size (each window's own part starts at the corner)."""
     h = max(windows[i][3] - windows[i][1] for i in todo)
@@ -295,26 +295,27 @@ def refine_poses_icp(
             results[i] = IcpResult(TCO[i].copy(), False, "object origin not in front of the camera (TCO z <= 0)")
         else:
             windows[i] = _window(TCO[i], K, _box_corners(renderer.mesh(obj_ids[i])), mask_box, (H, W), cfg.window_margin)
-    todo = [i for i in range(N) if windows[i] is not None]
-    render_share = 0.0
-    rendered = None
-    if todo:
-        rendered = _render_windows(renderer, obj_ids, TCO, K, windows, todo)
-        render_share = (time.perf_counter() - t_start) / len(todo)
-    for j, i in enumerate(todo):
+            if windows[i] is None:  # (not with a mask inside the image: its box is part of the window)
+                results[i] = IcpResult(TCO[i].copy(), False, "no image window around the object")
+    todo = {i: w for i, w in enumerate(windows) if w is not None}
+    rendered = _render_windows(renderer, obj_ids, TCO, K, todo, list(todo)) if todo else np.zeros((0, 1, 1))
+    render_share = (time.perf_counter() - t_start) / max(len(todo), 1)
+    refined: dict[int, IcpResult] = {}
+    for j, (i, window) in enumerate(todo.items()):
         syms = None if symmetries is None or symmetries[i] is None else np.asarray(symmetries[i], dtype=np.float64)
-        results[i] = _refine_one(TCO[i], K, depth, masks[i], rendered[j], windows[i], cfg, syms)
-        results[i].timings["render"] = render_share
+        refined[i] = _refine_one(TCO[i], K, depth, masks[i], rendered[j], window, cfg, syms)
+        refined[i].timings["render"] = render_share
+    done = [r if r is not None else refined[i] for i, r in enumerate(results)]
     if cfg.check_agreement:
-        _check_agreement(results, {i: rendered[j] for j, i in enumerate(todo)}, windows, TCO, K, depth, masks,
+        _check_agreement(done, {i: rendered[j] for j, i in enumerate(todo)}, windows, TCO, K, depth, masks,
                          renderer, obj_ids, cfg)
-    for i in todo:
-        results[i].seconds = sum(results[i].timings.values())
-    return results  # type: ignore[return-value]
+    for r in refined.values():
+        r.seconds = sum(r.timings.values())
+    return done
 
 
 def _check_agreement(results: list, rendered: dict[int, np.ndarray], windows: list, TCO: np.ndarray, K: np.ndarray,
-                     depth: np.ndarray, masks: np.ndarray, renderer: MeshRenderer, obj_ids: list[int],
+                     depth: np.ndarray, masks: np.ndarray, renderer: MeshRenderer, obj_ids: Sequence[int],
                      cfg: IcpConfig) -> None:
     """Set each result's ``agreement`` and reject, in place, an accepted result whose depth agrees
     less than its start's (the starts' renders are those ICP made; the results get one batched render)."""
@@ -398,6 +399,14 @@ def refine_pose_icp(
     return refine_poses_icp(np.asarray(TCO)[None], K, depth_measured, masks, renderer, [obj_id], cfg, [symmetries])[0]
 
 
+class _Rejected(Exception):
+    """An object ICP cannot refine: the reason and what was counted."""
+
+    def __init__(self, reason: str, **counts: int):
+        super().__init__(reason)
+        self.reason, self.counts = reason, counts
+
+
 def _refine_one(
     TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, mask: np.ndarray, rendered: np.ndarray,
     window: tuple[int, int, int, int], cfg: IcpConfig, symmetries: np.ndarray | None,
@@ -405,65 +414,25 @@ def _refine_one(
     """ICP of one object whose model depth ``rendered`` [h', w'] (>= window) starts at the window's corner."""
     import open3d as o3d
 
-    reg = o3d.pipelines.registration
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    x0, y0, x1, y1 = window
-    s = pixel_stride(cfg.voxel_size, K, TCO[2, 3])
-    d_model = rendered[: y1 - y0 : s, : x1 - x0 : s]
-    d_meas = depth[y0:y1:s, x0:x1:s]
-    meas_ok = (d_meas > 0) & (d_meas < np.inf)
-    m = mask[y0:y1:s, x0:x1:s]
-    model_ok = d_model > 0
-    hidden = model_ok & ~m & meas_ok & (d_meas < d_model - cfg.occlusion_margin)
-    src_px = model_ok & ~hidden
-    tgt_px = m & meas_ok
-
-    def reject(reason: str, **kw: Any) -> IcpResult:
-        timings.setdefault("clouds", time.perf_counter() - t0)
-        return IcpResult(TCO.copy(), False, reason, timings=timings, **kw)
-
-    n_tgt, n_src = int(tgt_px.sum()), int(src_px.sum())
-    if n_tgt < cfg.min_points:
-        return reject(f"too few measured depth points in the mask ({n_tgt} < {cfg.min_points})", n_points=n_tgt)
-    if n_src < cfg.min_points:
-        return reject(f"too few rendered model points in the window ({n_src} < {cfg.min_points})", n_model_points=n_src)
-    T_init = np.eye(4)
-    if cfg.depth_prealign:
-        both = model_ok & tgt_px
-        if both.sum() >= cfg.min_points:
-            dz = float(np.median(d_meas[both] - d_model[both]))
-            T_init[:3, 3] = TCO[:3, 3] * dz / TCO[2, 3]  # along the ray through the object origin
-    # Clouds in the object-centred camera frame (origin at the object origin c): ICP's rotations turn
-    # about the object, so a turn about a symmetry axis (free for point-to-plane) is not coupled
-    # to a translation that the small-angle solve would get wrong for large angles.
-    c = TCO[:3, 3]
-    rows, cols = np.nonzero(tgt_px)
-    target = _cloud(backproject(s * rows + y0, s * cols + x0, d_meas[rows, cols], K) - c, cfg.voxel_size)
-    rows, cols = np.nonzero(src_px)
-    source = _cloud(backproject(s * rows + y0, s * cols + x0, d_model[rows, cols], K) - c, cfg.voxel_size)
+    try:
+        source, target, T_init = _object_clouds(TCO, K, depth, mask, rendered, window, cfg)
+    except _Rejected as r:
+        timings["clouds"] = time.perf_counter() - t0
+        return IcpResult(TCO.copy(), False, r.reason, timings=timings, **r.counts)
     n_tgt, n_src = len(target.points), len(source.points)
     timings["clouds"] = time.perf_counter() - t0
-    if min(n_tgt, n_src) < cfg.min_points:
-        return reject(f"too few points after downsampling (measured {n_tgt}, model {n_src}; need {cfg.min_points})",
-                      n_points=n_tgt, n_model_points=n_src)
     target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius, max_nn=cfg.normal_max_nn))
     target.orient_normals_towards_camera_location(np.zeros(3))
     timings["normals"] = time.perf_counter() - t0 - timings["clouds"]
-    T = T_init  # a translation: the same in both frames
-    result = None
-    for dist, iters in zip(cfg.max_correspondence_distances, cfg.iterations):
-        kernel = robust_kernel(cfg.robust_kernel, dist if cfg.robust_k is None else cfg.robust_k)
-        result = reg.registration_icp(
-            source, target, dist, T, reg.TransformationEstimationPointToPlane(kernel),
-            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(iters)),
-        )
-        T = np.array(result.transformation)
+    T, fitness, inlier_rmse = _register(source, target, T_init, cfg)
     timings["icp"] = time.perf_counter() - t0 - timings["clouds"] - timings["normals"]
-    stats = dict(n_points=n_tgt, n_model_points=n_src, fitness=float(result.fitness),
-                 inlier_rmse=float(result.inlier_rmse), timings=timings)
+    stats: dict[str, Any] = dict(n_points=n_tgt, n_model_points=n_src, fitness=fitness, inlier_rmse=inlier_rmse,
+                                 timings=timings)
     if not np.isfinite(T).all():
         return IcpResult(TCO.copy(), False, "ICP update is not finite", **stats)
+    c = TCO[:3, 3]
     T[:3, 3] += c - T[:3, :3] @ c  # camera frame: C T C^-1, C = translation by c
     TCO_new = T @ TCO
     if symmetries is not None:  # the symmetric equivalent closest in rotation to the input pose
@@ -477,11 +446,66 @@ def _refine_one(
         (d_rot > cfg.max_rotation_deg, f"update rotates {d_rot:.1f} deg > max_rotation_deg {cfg.max_rotation_deg}"),
         (d_trans > cfg.max_translation,
          f"update moves {d_trans * 1000:.1f} mm > max_translation {cfg.max_translation * 1000:.0f} mm"),
-        (result.fitness < cfg.min_fitness, f"fitness {result.fitness:.3f} < min_fitness {cfg.min_fitness}"),
-        (result.inlier_rmse > cfg.max_inlier_rmse,
-         f"inlier RMSE {result.inlier_rmse * 1000:.2f} mm > max_inlier_rmse {cfg.max_inlier_rmse * 1000:.1f} mm"),
+        (fitness < cfg.min_fitness, f"fitness {fitness:.3f} < min_fitness {cfg.min_fitness}"),
+        (inlier_rmse > cfg.max_inlier_rmse,
+         f"inlier RMSE {inlier_rmse * 1000:.2f} mm > max_inlier_rmse {cfg.max_inlier_rmse * 1000:.1f} mm"),
     ]
     for failed, reason in checks:
         if failed:
             return IcpResult(TCO.copy(), False, reason, **stats)
     return IcpResult(TCO_new, True, "", **stats)
+
+
+def _object_clouds(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, mask: np.ndarray, rendered: np.ndarray,
+                   window: tuple[int, int, int, int], cfg: IcpConfig) -> tuple[Any, Any, np.ndarray]:
+    """(model cloud, measured cloud, initial transform [4,4]) of one object in the object-centred
+    camera frame (origin at the object origin: ICP's rotations turn about the object, so a turn about
+    a symmetry axis, free for point-to-plane, is not coupled to a translation that the small-angle
+    solve would get wrong for large angles). Raises _Rejected when either cloud is too small."""
+    x0, y0, x1, y1 = window
+    s = pixel_stride(cfg.voxel_size, K, TCO[2, 3])
+    d_model = rendered[: y1 - y0 : s, : x1 - x0 : s]
+    d_meas = depth[y0:y1:s, x0:x1:s]
+    meas_ok = (d_meas > 0) & (d_meas < np.inf)
+    m = mask[y0:y1:s, x0:x1:s]
+    model_ok = d_model > 0
+    hidden = model_ok & ~m & meas_ok & (d_meas < d_model - cfg.occlusion_margin)
+    src_px = model_ok & ~hidden
+    tgt_px = m & meas_ok
+    n_tgt, n_src = int(tgt_px.sum()), int(src_px.sum())
+    if n_tgt < cfg.min_points:
+        raise _Rejected(f"too few measured depth points in the mask ({n_tgt} < {cfg.min_points})", n_points=n_tgt)
+    if n_src < cfg.min_points:
+        raise _Rejected(f"too few rendered model points in the window ({n_src} < {cfg.min_points})", n_model_points=n_src)
+    T_init = np.eye(4)
+    if cfg.depth_prealign:
+        both = model_ok & tgt_px
+        if both.sum() >= cfg.min_points:
+            dz = float(np.median(d_meas[both] - d_model[both]))
+            T_init[:3, 3] = TCO[:3, 3] * dz / TCO[2, 3]  # along the ray through the object origin
+    c = TCO[:3, 3]
+    rows, cols = np.nonzero(tgt_px)
+    target = _cloud(backproject(s * rows + y0, s * cols + x0, d_meas[rows, cols], K) - c, cfg.voxel_size)
+    rows, cols = np.nonzero(src_px)
+    source = _cloud(backproject(s * rows + y0, s * cols + x0, d_model[rows, cols], K) - c, cfg.voxel_size)
+    n_tgt, n_src = len(target.points), len(source.points)
+    if min(n_tgt, n_src) < cfg.min_points:
+        raise _Rejected(f"too few points after downsampling (measured {n_tgt}, model {n_src}; need {cfg.min_points})",
+                        n_points=n_tgt, n_model_points=n_src)
+    return source, target, T_init
+
+
+def _register(source: Any, target: Any, T_init: np.ndarray, cfg: IcpConfig) -> tuple[np.ndarray, float, float]:
+    """(transform [4,4], fitness, inlier RMSE) of the staged point-to-plane ICP of ``source`` onto ``target``."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    T, fitness, inlier_rmse = T_init, 0.0, 0.0  # (a translation: the same in both frames)
+    for dist, iters in zip(cfg.max_correspondence_distances, cfg.iterations):
+        kernel = robust_kernel(cfg.robust_kernel, dist if cfg.robust_k is None else cfg.robust_k)
+        result = reg.registration_icp(
+            source, target, dist, T, reg.TransformationEstimationPointToPlane(kernel),
+            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(iters)),
+        )
+        T, fitness, inlier_rmse = np.array(result.transformation), float(result.fitness), float(result.inlier_rmse)
+    return T, fitness, inlier_rmse

@@ -62,6 +62,7 @@ def object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
     if dataset is not None:
         ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
         return ObjectModels(ds.models_dir)
+    assert models_dir is not None  # (exactly one of the two is given)
     return ObjectModels(Path(models_dir))
 
 

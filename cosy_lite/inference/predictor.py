@@ -136,7 +136,7 @@ class Predictor:
         if config.start in TEMPLATE_STARTS and templates is None:
             templates = SilhouetteTemplates(renderer, self.objects.obj_ids,
                                             self.objects.diameters.detach().cpu().double().tolist())
-        if config.start == "appearance" and templates.appearance is None:
+        if config.start == "appearance" and templates is not None and templates.appearance is None:
             AppearanceTemplates(templates, renderer)  # attaches itself: templates.match ranks by appearance
         self.templates = templates
         self.detection_filter = DetectionFilter(config.min_score, config.one_per_region)
@@ -366,7 +366,7 @@ class Predictor:
         clock = Clock(self.device)
         t_start = time.perf_counter()
         from_detector = detections is None
-        if from_detector:
+        if detections is None:
             detections = self.detect(rgb)
             clock.seconds["detection"] = detections.time_s
         det = self._select(detections, obj_ids, from_detector)
@@ -386,15 +386,17 @@ class Predictor:
         if self.config.icp and depth is not None:
             TCO_before_icp = TCO
             with clock("icp"):
-                if hypotheses is not None and self.config.icp_settings.verify_candidates and self.config.icp_settings.check_agreement:
+                icp = self.config.icp_settings
+                if hypotheses is not None and icp.verify_candidates and icp.check_agreement:
                     TCO, icp_results = self.depth_refinement.refine_hypotheses(hypotheses, K, depth, det, (H, W))
                 else:
                     TCO, icp_results = self.depth_refinement.refine(TCO, K, depth, det, (H, W))
         valid = valid_poses(TCO)
         if not valid.all():
-            bad = (~valid).nonzero().flatten().tolist()
-            warnings.warn(f"Predictor: invalid poses (NaN/inf, not a rotation or behind the camera) of "
-                          f"detections {bad} (obj_ids {det.obj_ids[bad].tolist()}); flagged valid=False", RuntimeWarning, stacklevel=2)
+            invalid = (~valid).nonzero().flatten().tolist()
+            warnings.warn(f"Predictor: invalid poses (NaN/inf, not a rotation or behind the camera) of detections "
+                          f"{invalid} (obj_ids {det.obj_ids[invalid].tolist()}); flagged valid=False", RuntimeWarning,
+                          stacklevel=2)
         return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
                              TCO_coarse, self._timings(clock, t_start), icp_results, TCO_before_icp)
 
@@ -416,10 +418,12 @@ class Predictor:
         renderer = TimedRenderer(self.renderer, clock)
         n_refiner = self.config.n_refiner_iterations
         hypotheses, pick = None, None
+        steps: list[tuple[str, PoseModel, int]] = []
         if self.start == "coarse":
+            assert self.coarse is not None  # (checked when built)
             TCO_init = initial_pose_from_boxes(det.boxes.double().to(self.device), K_b.double(),
                                                self.objects.diameters[rows.to(self.device)].double()).float()
-            steps = [("coarse", self.coarse, 1)]
+            steps.append(("coarse", self.coarse, 1))
             TCO_coarse = TCO_init
         else:
             with clock("crops"):
@@ -430,7 +434,6 @@ class Predictor:
                 TCO_coarse, TCO_init, hypotheses, pick = self._choose_candidate(candidates.float(), image, K_b, ids,
                                                                                 points, renderer, clock)
                 n_refiner -= 1
-            steps = []
         if self.refiner is not None:
             steps.append(("refiner", self.refiner, n_refiner))
         TCO = TCO_init

@@ -4,8 +4,9 @@ each iteration (the refiner numbers of a reference-model card).
 Instances: ``n`` object instances of a split with a GT pose (default the ``test`` split, which
 training never reads; visible fraction >= 0.1), drawn with a fixed seed; start poses: GT + the
 refiner's training noise (15 deg per Euler angle, (1, 1, 5) cm per camera axis, the same draw for
-every refiner), or the GT itself (``--from-gt``: the drift from a perfect start). Errors as in training validation (:func:`~cosy_lite.train.pose_task.pose_errors`:
-symmetry-aware rotation and translation, MSSD and ADD-S recall at 0.1 diameter).
+every refiner), or the GT itself (``--from-gt``: the drift from a perfect start). Errors as in
+training validation (:func:`~cosy_lite.train.pose_task.pose_errors`: symmetry-aware rotation and
+translation, MSSD and ADD-S recall at 0.1 diameter).
 """
 
 from __future__ import annotations
@@ -13,9 +14,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cosy_lite.inference.settings import InferenceConfig
+
+if TYPE_CHECKING:
+    from cosy_lite.structures import PoseSample
 
 NOISE_ROT_DEG = 15.0
 NOISE_TRANS_M = (0.01, 0.01, 0.05)
@@ -44,7 +48,9 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
     ds = BopDataset(Path(dataset_root))
     model = load_pose_model(refiner, "refiner")
     obj_ids = sorted(set(model.obj_ids) & set(ds.models_info))  # the refiner's objects this dataset has
-    items = PoseDataset(ds, split, obj_ids=obj_ids or None, min_visib_fract=0.1) if obj_ids else []
+    items: PoseDataset | list[PoseSample] = (
+        PoseDataset(ds, split, obj_ids=obj_ids or None, min_visib_fract=0.1) if obj_ids else []
+    )
     if len(items) == 0:
         raise CosyLiteError(f"{dataset_root}: no instance of the refiner's obj_ids {model.obj_ids} in split {split!r}")
     g = torch.Generator().manual_seed(seed)
@@ -103,9 +109,10 @@ def run(args: argparse.Namespace) -> int:
     use_egl()
     refiner = Path(args.refiner)
     if not refiner.exists() and "/" not in args.refiner and not refiner.suffix:
-        refiner = reference_models(args.refiner).path("refiner")
-        if refiner is None:
+        reference_refiner = reference_models(args.refiner).path("refiner")
+        if reference_refiner is None:
             raise ReferenceModelError(f"reference models {args.refiner!r} have no refiner")
+        refiner = reference_refiner
     if args.n < 1 or args.iterations < 1:
         raise CosyLiteError(f"-n {args.n} / --iterations {args.iterations}: expected integers >= 1")
     scores = score_refiner(refiner, dataset_folder(args.dataset), args.n, args.iterations, args.split, args.seed,

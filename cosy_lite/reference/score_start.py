@@ -79,6 +79,7 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
             candidates = torch.from_numpy(m.TCO[0]).float()
             pick = 0
             if n_candidates > 1:
+                assert model is not None  # candidates > 1 needs a refiner (checked above)
                 k = len(candidates)
                 _, confidence = refine_and_score(model.net, it.rgb.float()[None].expand(k, -1, -1, -1) / 255,
                                                  it.K[None].expand(k, 3, 3), candidates, [it.obj_id] * k,

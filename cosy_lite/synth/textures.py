@@ -75,13 +75,13 @@ def _stripes(rng: np.random.Generator, size: int) -> np.ndarray:
 
 
 def _gray_image(rng: np.random.Generator, size: int) -> np.ndarray:
-    im = _skimage_image(GRAY_TEXTURES[rng.integers(len(GRAY_TEXTURES))]).astype(np.float32) / 255.0
+    im: np.ndarray = _skimage_image(GRAY_TEXTURES[rng.integers(len(GRAY_TEXTURES))]).astype(np.float32) / 255.0
     im = cv2.resize(im if im.ndim == 2 else im.mean(2), (size, size), interpolation=cv2.INTER_AREA)
     return im[:, :, None] * _random_colour(rng)[None, None, :] * rng.uniform(1.0, 1.6)
 
 
 def _photo(rng: np.random.Generator, size: int) -> np.ndarray:
-    im = _skimage_image(PHOTOS[rng.integers(len(PHOTOS))]).astype(np.float32) / 255.0
+    im: np.ndarray = _skimage_image(PHOTOS[rng.integers(len(PHOTOS))]).astype(np.float32) / 255.0
     im = cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA)
     return im * (0.6 + 0.4 * _random_colour(rng))
 

@@ -126,7 +126,7 @@ def load_train_config(args: argparse.Namespace, dataset_name: str) -> Any:
         raise ConfigError(cfg_path, "--profile", f"no profile {args.profile!r} for the {args.model}; "
                           f"expected one of {profiles}")
     overrides = [*args.overrides, f"model={args.model}", f"dataset={dataset_name}"]
-    cfg = load_config(config_cls(), cfg_path, overrides)
+    cfg: Any = load_config(config_cls(), cfg_path, overrides)  # one of the tasks' config dataclasses
     from cosy_lite.train.loop import check_train_config
 
     check_train_config(cfg.loop, cfg.optim, " + ".join([str(cfg_path), *(f"override {o!r}" for o in args.overrides)]))

@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, cast
 
 import numpy as np
 import torch
@@ -119,8 +119,9 @@ class MasksAnyDataset(Dataset):
         dropped = np.flatnonzero((t.image_idx == row) & ~self.base.keep)
         mask_any = sample.masks.bool().any(dim=0) if len(sample.masks) else torch.zeros(sample.image.shape[-2:], dtype=torch.bool)
         if len(dropped):
+            h, w = sample.image.shape[-2:]
             extra = load_masks(self.base.dataset, self.base.split, sample.scene_id, sample.im_id,
-                               t.gt_idx[dropped].tolist(), tuple(sample.image.shape[-2:]))
+                               t.gt_idx[dropped].tolist(), (h, w))
             mask_any |= torch.from_numpy(extra.any(axis=0))
         return sample, mask_any
 
@@ -235,7 +236,7 @@ class DetectorTask:
         """COCO AP, AP50, AP75, mask AP, mask AP50 on the held-out images (NaN when undefined)."""
         if not self.val_keys:
             return {}
-        inner = getattr(model, "module", model)
+        inner = cast(Detector, getattr(model, "module", model))  # the detector, DDP-wrapped or not
         scores, _ = evaluate_detector(inner, self.dataset, self.cfg.data.split, self.val_keys,
                                       self.cfg.data.val_batch_size, device)
         return {"ap": scores.ap, "ap50": scores.ap50, "ap75": scores.ap75, "mask_ap": scores.mask_ap,

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sized
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import torch
 from torch.utils.data import DataLoader, Dataset
@@ -170,6 +171,47 @@ def _budget_done(run: RunState, step: int, loop: LoopConfig, dist: DistInfo) -> 
     return out_of_time_mean > 0, done
 
 
+def _prepare_folder(out_dir: Path, ckpt_path: Path) -> None:
+    """The run folder, without the temporary checkpoint files of an interrupted write."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if stale := remove_stale_temporaries(ckpt_path):
+        print(f"removed {len(stale)} temporary checkpoint file(s) of an interrupted run: {[p.name for p in stale]}")
+
+
+def _loader(task: TrainTask, loop: LoopConfig, start_step: int, dist: DistInfo, out_dir: Path) -> DataLoader:
+    """The task's training items in the order of (seed, step) from ``start_step`` on, this process's share."""
+    dataset = task.train_dataset()
+    sized = cast(Sized, dataset)  # map-style: every task's training set has a length
+    if len(sized) == 0:
+        raise CosyLiteError(f"{out_dir}: the {task.kind} training set is empty (no training items in the dataset)")
+    sampler = StepBatchSampler(len(sized), loop.batch_size, loop.seed, start_step, loop.steps, dist.rank,
+                               dist.world_size)
+    return DataLoader(dataset, batch_sampler=sampler, num_workers=loop.num_workers, collate_fn=task.collate,
+                      persistent_workers=False, pin_memory=dist.device.type == "cuda")
+
+
+def _step(task: TrainTask, train_model: torch.nn.Module, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+          batch: Any, run: RunState, loop: LoopConfig, optim: OptimConfig, dist: DistInfo,
+          out_dir: Path) -> dict[str, torch.Tensor]:
+    """One optimisation step (the random state a function of (seed, step, rank)); returns the losses."""
+    torch.manual_seed(loop.seed * 1_000_003 + run.step * dist.world_size + dist.rank)
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if loop.amp and dist.device.type == "cuda"
+                else nullcontext())
+    with autocast:
+        losses = task.compute_losses(train_model, batch, run.step, dist.device)
+    if not torch.isfinite(losses["total"]):
+        raise DivergedError(f"{out_dir}: step {run.step}: non-finite loss "
+                            f"{({k: float(v.detach()) for k, v in losses.items()})}; "
+                            "expected finite losses (lower optim.lr, check the data)")
+    optimizer.zero_grad(set_to_none=True)
+    losses["total"].backward()
+    if optim.clip_grad_norm > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), optim.clip_grad_norm)
+    set_learning_rate(optimizer, run.step, run.done, optim)
+    optimizer.step()
+    return losses
+
+
 def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | Path, config: dict[str, Any],
           resume: bool = False, progress: bool = True, init: str | Path | None = None) -> TrainSummary:
     """Train ``task``'s model; ``config`` is the full config (stored in checkpoints, checked on resume).
@@ -187,9 +229,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     dist = init_distributed(loop.device)
     device = dist.device
     if dist.is_main:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if stale := remove_stale_temporaries(ckpt_path):
-            print(f"removed {len(stale)} temporary checkpoint file(s) of an interrupted run: {[p.name for p in stale]}")
+        _prepare_folder(out_dir, ckpt_path)
     torch.set_flush_denormal(True)  # CPU: denormal floats (tiny Adam moments, activations) are very slow
     torch.manual_seed(loop.seed)  # the initial weights are a function of the seed (same on every rank)
     # resumed or --init: every weight is overwritten, so no pretrained (ImageNet) file is read
@@ -205,28 +245,12 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     ddp_model = (torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda"
                                                            else None) if dist.distributed else None)
     train_model = ddp_model if ddp_model is not None else model
-    dataset = task.train_dataset()
-    if len(dataset) == 0:
-        raise CosyLiteError(f"{out_dir}: the {task.kind} training set is empty (no training items in the dataset)")
-    sampler = StepBatchSampler(len(dataset), loop.batch_size, loop.seed, run.step, loop.steps, dist.rank,
-                               dist.world_size)
-    loader: Any = DataLoader(dataset, batch_sampler=sampler, num_workers=loop.num_workers, collate_fn=task.collate,
-                             persistent_workers=False, pin_memory=device.type == "cuda")
-    autocast = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if loop.amp and device.type == "cuda"
-                else nullcontext)
-
-    def checkpoint() -> None:
-        if dist.is_main:
-            save_run(ckpt_path, task.kind, model, optimizer, config, run, task.checkpoint_meta(), log.state(),
-                     dist.world_size)
-            if log_path.is_file():
-                plot_losses(log_path, out_dir / "loss.png")
+    loader: Any = _loader(task, loop, run.step, dist, out_dir)
 
     last_losses: dict[str, float] = {}
     last_val: dict[str, float] = {}
     if loop.val_at_start and loop.val_every > 0 and run.step == 0 and dist.is_main:
-        first_val = _validate(task, train_model, device)
-        log.validation(0, first_val)
+        log.validation(0, first_val := _validate(task, train_model, device))
         print("step 0: " + ", ".join(f"{k} {v:.4g}" for k, v in first_val.items()), flush=True)
     bar = tqdm(total=loop.steps, initial=run.step, desc=f"train {task.kind}", unit="step",
                disable=None if (progress and dist.is_main) else True, dynamic_ncols=True)  # None: only on a terminal
@@ -237,19 +261,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
                   f"{loop.max_minutes:g} already; nothing to do (raise loop.max_minutes to train on)")
         loader = []
     for batch in loader:
-        torch.manual_seed(loop.seed * 1_000_003 + run.step * dist.world_size + dist.rank)
-        with autocast():
-            losses = task.compute_losses(train_model, batch, run.step, device)
-        if not torch.isfinite(losses["total"]):
-            raise DivergedError(f"{out_dir}: step {run.step}: non-finite loss "
-                                f"{({k: float(v.detach()) for k, v in losses.items()})}; "
-                                "expected finite losses (lower optim.lr, check the data)")
-        optimizer.zero_grad(set_to_none=True)
-        losses["total"].backward()
-        if optim.clip_grad_norm > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), optim.clip_grad_norm)
-        set_learning_rate(optimizer, run.step, run.done, optim)
-        optimizer.step()
+        losses = _step(task, train_model, model, optimizer, batch, run, loop, optim, dist, out_dir)
         run.step += 1
         stop, run.done = _budget_done(run, run.step, loop, dist)
         run.items += loop.batch_size * dist.world_size
@@ -264,8 +276,10 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             last_val = _validate(task, model, device)
             log.validation(run.step, last_val)
             bar.write(f"step {run.step}: " + ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
-        if run.step % loop.checkpoint_every == 0 or run.step == loop.steps or stop:
-            checkpoint()
+        if (run.step % loop.checkpoint_every == 0 or run.step == loop.steps or stop) and dist.is_main:
+            save_run(ckpt_path, task.kind, model, optimizer, config, run, task.checkpoint_meta(), log.state(),
+                     dist.world_size)
+            plot_losses(log_path, out_dir / "loss.png")
         if stop:
             bar.write(f"stopping at step {run.step}: time budget of {loop.max_minutes} min reached (checkpoint saved)")
             break

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -24,7 +24,7 @@ from torch import Tensor
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
 from cosy_lite.errors import ConfigError
-from cosy_lite.geometry.crops import crop_images
+from cosy_lite.geometry.crops import Size, crop_images
 from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.model_files.pose_nets import PRETRAINED_ARCHS, PoseNetConfig, build_pose_net, check_net_config
@@ -208,7 +208,7 @@ class PoseTask:
         objects = self.objects.to(device)
         points, syms, sym_mask = objects.points[rows], objects.symmetries[rows], objects.sym_mask[rows]
         images = batch.rgb.float() / 255.0
-        res = tuple(self.cfg.net.crop_resolution)
+        res = cast(Size, tuple(self.cfg.net.crop_resolution))  # (h, w) px
 
         def augment(crops: Tensor, boxes: Tensor) -> Tensor:  # on crops: 10-30x fewer pixels than full images
             t = time.perf_counter()
@@ -294,7 +294,7 @@ def validate_pose_net(model, task: PoseTask, device: torch.device, n_iterations:
     images = batch.rgb.float() / 255.0
     n_it = n_iterations or task.cfg.val_iterations
     poses = iterate_poses(model, images, batch.K, v["TCO_in"].to(device), batch.obj_ids.tolist(), points,
-                          task.renderer, n_it, tuple(task.cfg.net.crop_resolution))
+                          task.renderer, n_it, cast(Size, tuple(task.cfg.net.crop_resolution)))
     d = objects.diameters[rows]
     out = pose_errors(v["TCO_in"].to(device), batch.TCO, points, syms, mask).summary(d, "init/")
     out.update(pose_errors(poses[0], batch.TCO, points, syms, mask).summary(d, "iter1/"))

@@ -60,7 +60,10 @@ def truncate_log(log_path: Path, step: int) -> None:
 
 
 def plot_losses(log_path: Path, png_path: Path) -> None:
-    """Loss curves (every ``loss/*`` term, log scale) and validation metrics from ``log.jsonl``."""
+    """Loss curves (every ``loss/*`` term, log scale) and validation metrics from ``log.jsonl`` (none
+    without a log yet)."""
+    if not log_path.is_file():
+        return
     import matplotlib
 
     matplotlib.use("Agg")

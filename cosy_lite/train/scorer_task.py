@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -183,7 +183,7 @@ class ScorerTask:
                 "initialised_from": self._initialised_from}
 
     def _scores(self, model: torch.nn.Module, crops: Tensor, obj_ids: Tensor, iou: Tensor, device: torch.device) -> Tensor:
-        net = model.module if hasattr(model, "module") else model
+        net = cast(AppearanceScorer, model.module if hasattr(model, "module") else model)  # the scorer, DDP-wrapped or not
         if self._descriptors_device != device:  # moved once (a GPU would otherwise copy ~35 MB per object and step)
             self.template_descriptors = {o: d.to(device) for o, d in self.template_descriptors.items()}
             self._descriptors_device = device
@@ -195,7 +195,7 @@ class ScorerTask:
         obj_ids, crops, iou, errors = batch
         x = augment_crops(crops.float() / 255.0, self.cfg.augmentation)
         scores = self._scores(model, x, obj_ids, iou, device)
-        net = model.module if hasattr(model, "module") else model
+        net = cast(AppearanceScorer, model.module if hasattr(model, "module") else model)  # the scorer, DDP-wrapped or not
         loss = listwise_loss(scores, errors.to(device).float(), net.log_logit_scale.exp(), self.cfg.data.positive_deg)
         return {"total": loss, "iou_weight": net.iou_weight.detach().clone()}
 

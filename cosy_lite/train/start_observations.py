@@ -125,16 +125,18 @@ def observe_all(instances: Any, templates: SilhouetteTemplates, symmetries: dict
 
 
 _CHUNK = 64  # instances per task of a worker
-_SHARED: tuple = ()  # (instances, templates, symmetries) of a forked worker
+# (instances, templates, symmetries) of a forked worker
+_SHARED: tuple[Any, SilhouetteTemplates, dict[int, np.ndarray]] | tuple[()] = ()
 
 
-def _worker_start(*shared: Any) -> None:
+def _worker_start(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray]) -> None:
     global _SHARED
     torch.set_num_threads(1)
-    _SHARED = shared
+    _SHARED = (instances, templates, symmetries)
 
 
 def _observe_chunk(index: range) -> tuple:
+    assert _SHARED, "set by _worker_start, the initializer of every worker"
     return _observe_range(*_SHARED, index, None)
 
 

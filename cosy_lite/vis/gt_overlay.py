@@ -26,14 +26,15 @@ def render_gt_overlay(ds: BopDataset, rec: ImageRecord, renderer: Renderer | Non
     h, w = rgb.shape[:2]
     if not rec.gt:
         return rgb
-    own = renderer is None
-    renderer = PyrenderRenderer.from_dataset(ds) if own else renderer
+    owned: PyrenderRenderer | None = None  # made here, so closed here
+    if renderer is None:
+        renderer = owned = PyrenderRenderer.from_dataset(ds)
     try:
         depth = renderer.render([g.obj_id for g in rec.gt], np.stack([g.TCO for g in rec.gt]), rec.camera.K, (h, w),
                                 depth_only=True).depth
     finally:
-        if own:
-            renderer.close()
+        if owned is not None:
+            owned.close()
     out = rgb
     for k, g in enumerate(rec.gt):
         colour = object_colour(g.obj_id)
