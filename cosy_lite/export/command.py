@@ -14,7 +14,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint -> detector.onnx")
     p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint -> coarse.onnx")
     p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint -> refiner.onnx")
-    p.add_argument("--out", type=Path, default=Path("onnx"), metavar="DIR", help="export folder (default onnx/; models/ holds the reference models)")
+    p.add_argument("--out", type=Path, default=Path("onnx"), metavar="DIR",
+                   help="export folder (default onnx/; models/ holds the reference models)")
     p.add_argument("--quantize", default=None, choices=["int8"],
                    help="also write dynamically quantised pose networks (coarse.int8.onnx, refiner.int8.onnx)")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset (>= 11; default 17)")

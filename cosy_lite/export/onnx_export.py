@@ -26,7 +26,7 @@ import warnings
 from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -40,6 +40,9 @@ from cosy_lite.export.manifest import (
     metadata_of,
     write_metadata,
 )
+
+if TYPE_CHECKING:
+    from cosy_lite.models.detector import Detector
 
 OPSET = 17  # >= 11 for Mask R-CNN (NMS, RoiAlign); 17 is what the legacy exporter knows well
 POSE_INPUT, POSE_OUTPUT = "images", "delta"
@@ -91,7 +94,7 @@ def export_pose_net(net: nn.Module, path: str | Path, kind: str, crop_resolution
     return entry
 
 
-def export_detector(detector: nn.Module, path: str | Path, source: str = "", opset: int = OPSET,
+def export_detector(detector: Detector, path: str | Path, source: str = "", opset: int = OPSET,
                     seed: int = 0) -> ModelEntry:
     """Write a :class:`~cosy_lite.models.detector.Detector` (its Mask R-CNN with pre/post-processing)
     to ``path``; returns its manifest entry. The label map and config go into the metadata."""
@@ -113,7 +116,7 @@ def _interpolation_matrix(start: Tensor, size: Tensor, length: Tensor | int, n_s
     """``[N, length, n_src]`` weights that resize ``n_src`` samples to ``size[n]`` samples placed at
     ``start[n]`` on an axis of ``length`` pixels (bilinear, ``align_corners=False``, as
     ``F.interpolate``; zero outside the placed span)."""
-    pos = torch.arange(length, dtype=torch.int64)
+    pos = torch.arange(length, dtype=torch.int64)  # type: ignore[arg-type]  # a 0-dim tensor when traced; stub: Number
     r = pos[None, :] - start[:, None]  # [N, L] index into the resized mask
     valid = (r >= 0) & (r < size[:, None])
     scale = torch.full_like(size, n_src, dtype=torch.float32) / size.to(torch.float32)
@@ -175,6 +178,7 @@ def _pose_net_from_checkpoint(path: Path, kind: str) -> tuple[nn.Module, tuple[i
     model = load_pose_model(path, kind)
     ckpt = load_checkpoint(path, kind=kind)
     config = ckpt.meta.get("net", ckpt.config.get("net", {}))
+    assert isinstance(model.net, nn.Module)  # built from the checkpoint's config (not an ONNX callable)
     return model.net, model.crop_resolution, model.obj_ids, dict(config)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import tempfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, cast
 
 import numpy as np
 
@@ -38,7 +38,8 @@ def quantize_pose_net_int8(src: Path, dst: Path, entry: ModelEntry, config: dict
     out.file, out.quantization, out.source = dst.name, "int8", f"{entry.source} (quantised from {src.name})"
     write_metadata(dst, metadata_of(out, config))
     out.bytes, out.sha256 = file_digest(dst)
-    x = np.random.default_rng(seed).random((CHECK_BATCH, *entry.input_shape[1:]), dtype=np.float32)
+    shape = cast(list[int], entry.input_shape[1:])  # [6, h, w]: only the batch axis of a pose network is named
+    x = np.random.default_rng(seed).random((CHECK_BATCH, *shape), dtype=np.float32)
     runs = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {entry.input_name: x})[0]
             for p in (src, dst)]
     out.check = {"batch": CHECK_BATCH, "max_abs_diff_vs_fp32": float(np.abs(runs[1] - runs[0]).max()),
@@ -51,7 +52,7 @@ def relative_rms_error(out: np.ndarray, ref: np.ndarray) -> float:
     """RMS of ``out - ref`` over the RMS of ``ref``: the size of the quantisation noise relative to the
     signal (0: equal; about 1.4: an unrelated output of the same size)."""
     ref64 = ref.astype(np.float64)
-    return float(np.sqrt(np.mean((out.astype(np.float64) - ref64) ** 2) / max(np.mean(ref64 ** 2), 1e-30)))
+    return float(np.sqrt(np.mean((out.astype(np.float64) - ref64) ** 2) / max(float(np.mean(ref64 ** 2)), 1e-30)))
 
 
 # name -> quantiser(src, dst, fp32 entry, config) -> entry

@@ -323,7 +323,8 @@ def load_weights(path: str | Path) -> Checkpoint:
     (float32 tensors; no training state). Raises :class:`CheckpointError` naming the file and field
     for anything unusable (a shard missing, shards of different networks)."""
     path = Path(path)
-    header, tensors = {}, {}
+    header: dict[str, str] = {}
+    tensors: dict[str, torch.Tensor] = {}
     for part in shard_paths(path):
         part_header, part_tensors = _read_weights_file(part)
         if header and any(part_header.get(k) != header.get(k) for k in ("kind", "step", "config", "meta")):

@@ -9,7 +9,7 @@ into (:func:`~cosy_lite.model_files.loaders.load_pose_model`, export).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -75,7 +75,8 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
     if kind not in OUTPUT_SCALES:
         raise ValueError(f"model kind must be one of {sorted(OUTPUT_SCALES)}, got {kind!r}")
     check_net_config(cfg)
-    scale = tuple(OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale)
+    # (lengths: the networks unpack 3 scales and an (h, w) crop resolution, raising otherwise)
+    scale = cast(tuple[float, float, float], tuple(OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale))
     if cfg.arch == "flow":
         from cosy_lite.models.flow_pose_net import FlowPoseNet
 
@@ -86,6 +87,7 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
 
         return SiamesePoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
                               corr_radius=cfg.corr_radius, width=cfg.width, output_scale=scale,
-                              crop_resolution=tuple(cfg.crop_resolution), flat_channels=cfg.flat_channels)
+                              crop_resolution=cast(tuple[int, int], tuple(cfg.crop_resolution)),
+                              flat_channels=cfg.flat_channels)
     return PoseNet(backbone=cfg.backbone, in_channels=6, norm=cfg.norm, output_scale=scale,
                    crop_width=int(cfg.crop_resolution[1]))

@@ -276,7 +276,8 @@ def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) ->
     folder = Path(folder)
     old = weights_file(folder, ckpt.kind)
     unsharded_large = old is not None and old.name == f"{ckpt.kind}.safetensors" and old.stat().st_size > MAX_FILE_BYTES + 2**16
-    if _same_weights(old, ckpt) and not unsharded_large:  # (a card update leaves the weights files as they are)
+    # (a card update leaves the weights files as they are)
+    if old is not None and _same_weights(old, ckpt) and not unsharded_large:
         files = shard_paths(old)
     else:
         stale = shard_paths(old) if old is not None else []

@@ -27,7 +27,7 @@ import hashlib
 import os
 import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 import cv2
 import numpy as np
@@ -66,6 +66,10 @@ class AppearanceDescriptor(nn.Module):
     float32, the stride-8 and stride-16 feature maps, each cell scaled to unit length and divided by
     the square root of its map's cell count (so a dot product is the sum of two mean cosines)."""
 
+    # buffers (register_buffer), declared for type checkers
+    mean: Tensor  # [3, 1, 1] ImageNet mean
+    std: Tensor  # [3, 1, 1]
+
     def __init__(self, trunk: str = "efficientnet_lite0", load_weights: bool = True):
         super().__init__()
         from cosy_lite.models.pretrained import lite_features
@@ -103,7 +107,8 @@ class AppearanceTemplates:
         self.renderer = renderer
         self.descriptor = descriptor or AppearanceDescriptor()
         self.scorer = None if scorer is None else scorer.eval()
-        self.iou_weight = float(iou_weight) if scorer is None else float(scorer.iou_weight.detach())
+        # an AppearanceScorer's iou_weight is an nn.Parameter
+        self.iou_weight = float(iou_weight) if scorer is None else float(cast(Tensor, scorer.iou_weight).detach())
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.model_keys = {int(k): str(v) for k, v in (model_keys or {}).items()}
         self._cache: dict[int, Tensor] = {}

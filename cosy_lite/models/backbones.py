@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, cast
 
 import torch
 from torch import nn
@@ -21,6 +21,7 @@ from torchvision import models as tvm
 
 NORM_LAYERS = ("batch", "group")
 GROUPS = 32  # GroupNorm groups (fewer when the channel count is not divisible)
+Pair = tuple[int, int]  # nn.Conv2d's 2D kernel size, stride, padding, dilation (typed there as tuple[int, ...])
 
 
 def group_norm(num_channels: int) -> nn.GroupNorm:
@@ -39,35 +40,43 @@ def _replace_conv_input(conv: nn.Conv2d, in_channels: int) -> nn.Conv2d:
     """A copy of ``conv`` taking ``in_channels`` inputs (fresh weights)."""
     if in_channels == conv.in_channels:
         return conv
-    return nn.Conv2d(in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
-                     conv.dilation, conv.groups, conv.bias is not None)
+    padding = conv.padding if isinstance(conv.padding, str) else cast(Pair, conv.padding)
+    return nn.Conv2d(in_channels, conv.out_channels, cast(Pair, conv.kernel_size), cast(Pair, conv.stride), padding,
+                     cast(Pair, conv.dilation), conv.groups, conv.bias is not None)
 
 
-def _norm_kwargs(norm: str) -> dict:
+def _norm_kwargs(norm: str) -> dict[str, Callable[[int], nn.Module]]:
     layer = norm_layer(norm)
     return {} if layer is None else {"norm_layer": layer}
 
 
 def _resnet(ctor: Callable[..., nn.Module], in_channels: int, norm: str) -> tuple[nn.Module, int]:
     net = ctor(weights=None, **_norm_kwargs(norm))
-    net.conv1 = _replace_conv_input(net.conv1, in_channels)
-    n = net.fc.in_features
+    net.conv1 = _replace_conv_input(cast(nn.Conv2d, net.conv1), in_channels)
+    n = cast(nn.Linear, net.fc).in_features
     net.fc = nn.Identity()
     return net, n
 
 
+def _replace_first_conv(net: nn.Module, in_channels: int) -> None:
+    """``net.features[0][0]`` (the stem convolution of EfficientNet, MobileNetV3) for ``in_channels`` inputs."""
+    stem = cast(nn.Sequential, cast(nn.Sequential, net.features)[0])
+    stem[0] = _replace_conv_input(cast(nn.Conv2d, stem[0]), in_channels)
+
+
 def _efficientnet(ctor: Callable[..., nn.Module], in_channels: int, norm: str) -> tuple[nn.Module, int]:
     net = ctor(weights=None, **_norm_kwargs(norm))
-    net.features[0][0] = _replace_conv_input(net.features[0][0], in_channels)
-    n = net.classifier[-1].in_features
+    _replace_first_conv(net, in_channels)
+    n = cast(nn.Linear, cast(nn.Sequential, net.classifier)[-1]).in_features
     net.classifier = nn.Identity()
     return net, n
 
 
 def _mobilenet_v3(ctor: Callable[..., nn.Module], in_channels: int, norm: str) -> tuple[nn.Module, int]:
     net = ctor(weights=None, **_norm_kwargs(norm))
-    net.features[0][0] = _replace_conv_input(net.features[0][0], in_channels)
-    n = net.classifier[0].in_features  # pooled last conv (the Linear-Hardswish head is dropped)
+    _replace_first_conv(net, in_channels)
+    # pooled last conv (the Linear-Hardswish head is dropped)
+    n = cast(nn.Linear, cast(nn.Sequential, net.classifier)[0]).in_features
     net.classifier = nn.Identity()
     return net, n
 

@@ -10,7 +10,8 @@ Classes are contiguous labels ``1..n`` (0 is background); :class:`LabelMap` maps
 ``obj_id`` and is stored in checkpoints (:meth:`Detector.meta`).
 
 Training: ``losses = detector_losses(model, batch.images, batch.targets)`` (a
-:class:`cosy_lite.structures.DetectionBatch`); ``losses["total"]`` is the sum to back-propagate. Inference: ``detect(model, images) -> list[Detections]``. Images are lists of
+:class:`cosy_lite.structures.DetectionBatch`); ``losses["total"]`` is the sum to back-propagate.
+Inference: ``detect(model, images) -> list[Detections]``. Images are lists of
 ``[3, H, W]`` float tensors in ``[0, 1]`` (sizes may differ); torchvision resizes them so the
 short side is ``min_size`` (capped by ``max_size``) and normalises them inside the model. The
 module exported to ONNX is :attr:`Detector.net` (outputs contiguous labels, not obj_ids).
@@ -19,7 +20,7 @@ module exported to ONNX is :attr:`Detector.net` (outputs contiguous labels, not 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, cast
 
 import torch
 from torch import nn
@@ -34,6 +35,9 @@ from torchvision.ops.feature_pyramid_network import FeaturePyramidNetwork, LastL
 from cosy_lite.bop.detections import Detections
 from cosy_lite.models.backbones import norm_layer
 from cosy_lite.models.detection_masks import binary_masks
+
+if TYPE_CHECKING:
+    from timm.models.efficientnet import EfficientNetFeatures
 
 BOX_POOL = 7  # torchvision's box RoIAlign output size
 
@@ -142,7 +146,7 @@ def _norm(cfg: DetectorConfig) -> Callable[[int], nn.Module]:
 
 def _resnet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig, load_weights: bool = True) -> BackboneWithFPN:
     """ResNet C2..C5 + FPN (+ max-pool level): 5 levels, strides 4..64."""
-    net = ctor(weights=None, norm_layer=_norm(cfg))
+    net = cast(tvm.ResNet, ctor(weights=None, norm_layer=_norm(cfg)))
     layers = ("layer1", "layer2", "layer3", "layer4")
     c5 = net.fc.in_features  # channels double at each stage: C2..C5 = c5/8, c5/4, c5/2, c5
     in_channels = [c5 // 8, c5 // 4, c5 // 2, c5]
@@ -152,13 +156,13 @@ def _resnet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig, load_weight
 
 def _mobilenet_fpn(ctor: Callable[..., nn.Module], cfg: DetectorConfig, load_weights: bool = True) -> BackboneWithFPN:
     """MobileNetV3 stages at strides 8, 16, 32 + FPN (+ max-pool level): 4 levels."""
-    features = ctor(weights=None, norm_layer=_norm(cfg)).features
+    features = cast(tvm.MobileNetV3, ctor(weights=None, norm_layer=_norm(cfg))).features
     # Last block of each resolution (torchvision marks the blocks that end a stage with _is_cn).
     ends = [i for i, b in enumerate(features) if getattr(b, "_is_cn", False)] + [len(features) - 1]
     if len(ends) < 4:
         raise RuntimeError(f"{ctor.__name__}: torchvision no longer marks its stages (_is_cn); update _mobilenet_fpn")
     picked = ends[-4:-3] + ends[-3:-2] + ends[-1:]  # strides 8, 16, 32
-    in_channels = [features[i].out_channels for i in picked]
+    in_channels = [cast(int, features[i].out_channels) for i in picked]  # InvertedResidual, Conv2dNormActivation
     return BackboneWithFPN(features, {str(i): str(k) for k, i in enumerate(picked)}, in_channels,
                            cfg.fpn_channels, extra_blocks=LastLevelMaxPool())
 
@@ -179,7 +183,7 @@ class LiteFPN(nn.Module):
         # load_weights=False: the same (frozen) structure, weights to come from a checkpoint
         body = lite_features(trunk, (1, 2, 3, 4), pretrained=pretrained and load_weights)
         if pretrained:
-            body = freeze_batchnorm(body)
+            body = cast("EfficientNetFeatures", freeze_batchnorm(body))  # frozen in place: the same module
             for module in [body.conv_stem, body.bn1, *list(body.blocks)[:frozen_blocks]]:
                 for p in module.parameters():
                     p.requires_grad_(False)
@@ -200,7 +204,7 @@ def _lite_fpn(trunk: str, cfg: DetectorConfig, load_weights: bool = True) -> Lit
 class DetectorSpec:
     """A backbone builder and the torchvision classifier it wraps."""
 
-    backbone: Callable[[Any, DetectorConfig, bool], nn.Module]  # (ctor, config, load_weights)
+    backbone: Callable[[Any, DetectorConfig, bool], BackboneWithFPN | LiteFPN]  # (ctor, config, load_weights)
     ctor: Any  # torchvision classifier constructor, or the timm trunk name
     n_levels: int  # FPN outputs incl. the max-pool level (one anchor size per level)
 
@@ -311,7 +315,8 @@ def _unwrap(model: nn.Module) -> Detector:
     return inner
 
 
-def detector_losses(model: nn.Module, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+def detector_losses(model: nn.Module, images: list[torch.Tensor],
+                    targets: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     """Mask R-CNN training losses; the model must be in training mode (DDP wrapper allowed).
 
     ``images``: B x ``[3,H,W]`` float in ``[0,1]``. ``targets``: B x torchvision targets as in

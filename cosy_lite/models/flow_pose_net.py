@@ -72,6 +72,10 @@ class FlowPoseNet(nn.Module):
         temperature: initial softmax temperature of the cosine similarities (learnt).
     """
 
+    # buffers (register_buffer), declared for type checkers
+    mean: torch.Tensor  # [1, 3, 1, 1] ImageNet mean
+    std: torch.Tensor  # [1, 3, 1, 1]
+
     output = "flow"  # what forward returns: the render-and-compare loop solves the pose from it
     stride = FLOW_STRIDE
 

@@ -98,7 +98,7 @@ def _per_axis(x: float | Sequence[float], name: str) -> tuple[float, float, floa
     v = (float(x),) * 3 if isinstance(x, (int, float)) else tuple(float(a) for a in x)
     if len(v) != 3 or any(a < 0 for a in v):
         raise ValueError(f"{name} must be a non-negative number or 3 of them, got {x!r}")
-    return v  # type: ignore[return-value]
+    return v
 
 
 def _rotate_camera(R: Tensor, noise: Tensor) -> Tensor:

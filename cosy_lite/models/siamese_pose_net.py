@@ -62,7 +62,8 @@ def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
 
 
-def _drop_removed_trunk_blocks(module: nn.Module, state_dict: dict, prefix: str, *args) -> None:
+def _drop_removed_trunk_blocks(module: SiamesePoseNet, state_dict: dict[str, torch.Tensor], prefix: str,
+                               *args: object) -> None:
     """Load hook: checkpoints written before the trunk lost its unused last blocks (2026-12-02) still
     carry their weights; they are left out."""
     head, kept = prefix + "trunk.blocks.", len(module.trunk.blocks)
@@ -84,6 +85,11 @@ class SiamesePoseNet(nn.Module):
         crop_resolution: (h, w) of the input crops (multiples of 16 with ``flat_channels``).
         flat_channels: channels of the flattened stride-16 map fed to the head (0: none).
     """
+
+    # buffers (register_buffer), declared for type checkers
+    mean: torch.Tensor  # [1, 3, 1, 1] ImageNet mean
+    std: torch.Tensor  # [1, 3, 1, 1]
+    output_scale: torch.Tensor  # [1, 9] head multipliers
 
     def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
                  corr_radius: int = 3, width: int = 128, output_scale: tuple[float, float, float] = (0.25, 0.04, 0.06),

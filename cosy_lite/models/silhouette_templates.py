@@ -220,10 +220,11 @@ class SilhouetteTemplates:
             if view is None:
                 found[i] = False
                 continue
-            t = self.templates(int(obj_ids[i]))
+            obj_id = int(obj_ids[int(i)])
+            t = self.templates(obj_id)
             score = self.silhouette_iou(t, view.grid)
             if self.appearance is not None and rgb is not None:
-                score = self.appearance.score(int(obj_ids[i]), rgb, view, K[i], score)
+                score = self.appearance.score(obj_id, rgb, view, K[i], score)
             best = np.argsort(-score, kind="stable")[:k]
             scores[i] = score[best]
             TCO[i] = self.poses(t, best, view, K[i])
