@@ -32,10 +32,10 @@ def bench_checkpoint(path: Path, root: Path, split: str, out_dir: Path | None) -
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.detections import write_detections_json
     from cosy_lite.data.instances import load_rgb
-    from cosy_lite.model_files.checkpoint import load_checkpoint
-    from cosy_lite.model_files.loaders import load_detector
-    from cosy_lite.models.detector import detect
+    from cosy_lite.nets.detector import detect
     from cosy_lite.train.detector_task import evaluate_detector
+    from cosy_lite.weights.checkpoint import load_checkpoint
+    from cosy_lite.weights.loaders import load_detector
 
     model = load_detector(path)
     step = load_checkpoint(path, kind="detector").step

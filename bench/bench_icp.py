@@ -74,12 +74,12 @@ def bench_latency(n_objects: list[int], repeats: int) -> list[dict]:
     import trimesh
 
     from cosy_lite.inference.icp import refine_poses_icp
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.render.renderer import GlRenderer
     from cosy_lite.synth.objects import load_ycb_mesh
 
     meshes = {i: load_ycb_mesh(i) for i in OBJECTS}
     meshes[WALL] = trimesh.creation.box(extents=(3.0, 3.0, 0.01))
-    renderer = PyrenderRenderer(meshes=meshes)
+    renderer = GlRenderer(meshes=meshes)
     TCO_gt, depth, masks = synthetic_scene(renderer)
     rng = np.random.default_rng(1)
     rows = []
@@ -110,10 +110,10 @@ def bench_dataset(root: Path, n_images: int, use_symmetries: bool, seed: int = 0
     from cosy_lite.eval.object_errors import ObjectErrors
     from cosy_lite.geometry.symmetries import symmetry_transforms
     from cosy_lite.inference.icp import refine_poses_icp
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.render.renderer import GlRenderer
 
     ds = BopDataset(root)
-    renderer = PyrenderRenderer.from_dataset(ds)
+    renderer = GlRenderer.from_dataset(ds)
     rng = np.random.default_rng(seed)
     obj_errors: dict[int, ObjectErrors] = {}
     syms = {obj_id: symmetry_transforms(info) for obj_id, info in ds.models_info.items()}

@@ -69,8 +69,8 @@ def build_predictor(ds, renderer, objects, profile: str, icp: bool, precision: s
     from cosy_lite.geometry.symmetries import symmetry_transforms
     from cosy_lite.inference.predictor import Predictor
     from cosy_lite.inference.settings import InferenceConfig
-    from cosy_lite.model_files.loaders import PoseModel
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.weights.loaders import PoseModel
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     backbone, crop = PROFILES[profile]
     models = []
@@ -86,10 +86,10 @@ def time_detector(ds, rgb: np.ndarray, ckpt: Path | None, repeats: int) -> tuple
     """(median s, best s, detections, what) of the detector on ``rgb``."""
     import torch
 
-    from cosy_lite.models.detector import Detector, LabelMap, detect
+    from cosy_lite.nets.detector import Detector, LabelMap, detect
 
     if ckpt is not None:
-        from cosy_lite.model_files.loaders import load_detector
+        from cosy_lite.weights.loaders import load_detector
 
         model, what = load_detector(ckpt), str(ckpt)
     else:
@@ -136,14 +136,14 @@ def main(argv: list[str] | None = None) -> None:
 
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.inference import predictor as _  # noqa: F401  (torchvision before any rendering)
-    from cosy_lite.models.object_table import ObjectTable
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.render.renderer import GlRenderer
 
     torch.set_num_threads(args.threads)
     ds = BopDataset(args.dataset)
     rec, keep = pick_image(ds, max(args.objects))
     rgb, depth = ds.load_rgb(rec), ds.load_depth(rec)
-    renderer = PyrenderRenderer.from_dataset(ds)
+    renderer = GlRenderer.from_dataset(ds)
     objects = ObjectTable.from_dataset(ds, sorted({rec.gt[i].obj_id for i in keep}))
     load0 = os.getloadavg()
     print(f"# {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} threads, "

@@ -70,10 +70,10 @@ def build_nets(profile: str, tmp: Path, threads: int, int8: bool, random_head: b
     import torch
 
     from cosy_lite.export.onnx_export import export_pose_net
-    from cosy_lite.export.onnx_models import OnnxPoseNet
     from cosy_lite.export.quantize import quantize_pose_net_int8
+    from cosy_lite.inference.onnx_runtime import OnnxPoseNet
     from cosy_lite.inference.predictor import inference_net
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     backbone, crop = PROFILES[profile]
     torch.manual_seed(0)
@@ -126,13 +126,13 @@ def end_to_end_table(ds, nets, objects_counts: list[int], warmup: int, repeat: i
     from bench_inference import oracle, pick_image
 
     from cosy_lite.inference.predictor import Predictor
-    from cosy_lite.model_files.loaders import PoseModel
-    from cosy_lite.models.object_table import ObjectTable
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.render.renderer import GlRenderer
+    from cosy_lite.weights.loaders import PoseModel
 
     rec, keep = pick_image(ds, max(objects_counts))
     rgb = ds.load_rgb(rec)
-    renderer = PyrenderRenderer.from_dataset(ds)
+    renderer = GlRenderer.from_dataset(ds)
     objects = ObjectTable.from_dataset(ds, sorted({rec.gt[i].obj_id for i in keep}))
     ids = objects.obj_ids
     predictors = {}
@@ -181,8 +181,8 @@ def detector_table(ds, tmp: Path, threads: int, warmup: int, repeat: int) -> lis
 
     from cosy_lite.config import load_config, packaged_config
     from cosy_lite.export.onnx_export import export_detector
-    from cosy_lite.export.onnx_models import OnnxDetector
-    from cosy_lite.models.detector import Detector, LabelMap, detect
+    from cosy_lite.inference.onnx_runtime import OnnxDetector
+    from cosy_lite.nets.detector import Detector, LabelMap, detect
     from cosy_lite.train.detector_task import DetectorTrainConfig
 
     cfg = load_config(DetectorTrainConfig, packaged_config("detector", "demo.yaml"))

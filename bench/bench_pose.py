@@ -39,14 +39,14 @@ def main(argv: list[str] | None = None) -> int:
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.eval.pose_errors import mssd
     from cosy_lite.geometry.symmetries import symmetry_transforms
-    from cosy_lite.model_files.checkpoint import load_checkpoint
-    from cosy_lite.model_files.pose_nets import build_pose_net
-    from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
-    from cosy_lite.models.object_table import ObjectTable
-    from cosy_lite.models.render_and_compare import iterate_poses
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.nets.initial_pose import add_pose_noise, initial_pose_from_boxes
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.nets.render_and_compare import iterate_poses
+    from cosy_lite.render.renderer import GlRenderer
     from cosy_lite.structures import PoseBatch
     from cosy_lite.train.pose_task import pose_errors
+    from cosy_lite.weights.checkpoint import load_checkpoint
+    from cosy_lite.weights.pose_nets import build_pose_net
 
     ds = BopDataset(args.dataset)
     def load(path, kind):
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     points, syms, mask, diam = objects.points[rows], objects.symmetries[rows], objects.sym_mask[rows], objects.diameters[rows]
     images = batch.rgb.float() / 255.0
     obj_ids = batch.obj_ids.tolist()
-    renderer = PyrenderRenderer.from_dataset(ds)
+    renderer = GlRenderer.from_dataset(ds)
     print(f"{len(idx)} instances of {args.split} ({len(set(zip(batch.scene_ids.tolist(), batch.im_ids.tolist())))} images), "
           f"crops {res}, backbone {ck_ref.meta['net']['backbone']}, refiner step {ck_ref.step}")
 

@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--baselines", action="store_true")
     args = ap.parse_args(argv)
 
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.render.renderer import GlRenderer
 
     with tempfile.TemporaryDirectory() as tmp:
         models = args.meshes or (DEFAULT_MODELS if DEFAULT_MODELS.is_dir() else None)
@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> None:
 
             write_bop_models(args.objects, Path(tmp))
             models = Path(tmp) / "models"
-        renderer = PyrenderRenderer(models_dir=models)
+        renderer = GlRenderer(models_dir=models)
         t = time.perf_counter()
         meshes = {i: renderer.mesh(i) for i in args.objects}
         t_load = time.perf_counter() - t
@@ -229,12 +229,12 @@ def main(argv: list[str] | None = None) -> None:
             ids, TCO, K = crop_batch(meshes, args.objects, B, res)
             per_scene = PyrenderScenePerCrop(meshes, res)
             toggle = PyrenderSceneToggle(meshes, res)
-            no_cull, tiled = PyrenderRenderer(meshes, cull_back_faces=False), PyrenderRenderer(meshes)
+            no_cull, tiled = GlRenderer(meshes, cull_back_faces=False), GlRenderer(meshes)
             variants = {
                 "pyrender, Scene per crop": partial(per_scene.render, ids, TCO, K),
                 "pyrender, one Scene, nodes toggled": partial(toggle.render, ids, TCO, K),
                 "this, no back-face culling": partial(no_cull.render, ids, TCO, K, res),
-                "this, 1 crop in flight": partial(PyrenderRenderer(meshes, max_in_flight=1).render, ids, TCO, K, res),
+                "this, 1 crop in flight": partial(GlRenderer(meshes, max_in_flight=1).render, ids, TCO, K, res),
                 "this, crops as tiles of one framebuffer": partial(render_tiled, tiled, ids, TCO, K, res),
             }
             cases += [(res, B, f"rgb+depth, {name}", fn, float("nan")) for name, fn in variants.items()]

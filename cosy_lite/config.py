@@ -4,7 +4,6 @@ overrides come last (merged with OmegaConf)."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Any, TypeVar, overload
 
@@ -132,11 +131,6 @@ def load_config(cls: type[T] | T, yaml_path: str | Path | None = None, overrides
         if isinstance(e, FieldValueError):
             raise ConfigError(sources, e.field, e.problem) from None
         raise ConfigError(sources, "", str(e)) from None
-
-
-def config_to_dict(cfg: Any) -> dict[str, Any]:
-    """Plain dict of a config dataclass (for checkpoints and logs)."""
-    return dataclasses.asdict(cfg)
 
 
 def save_config(cfg: Any, path: str | Path) -> None:

@@ -2,7 +2,7 @@
 
 Steps, each a separate process (the commands a user would type), each skipped when its output
 is already there, so an interrupted demo continues where it stopped. By default (a dataset with
-shipped reference models, :mod:`cosy_lite.model_files.reference_models`):
+shipped reference models, :mod:`cosy_lite.weights.reference_models`):
 
 1. generate the dataset's ``test`` split and a small part of ``train_pbr``
    (:attr:`DemoConfig.short_train_images`) if absent, and validate it;
@@ -123,7 +123,7 @@ class DemoConfig:
     @property
     def reference(self) -> str | None:
         """The reference models the demo infers with (None: it trains its own)."""
-        from cosy_lite.model_files.reference_models import reference_names
+        from cosy_lite.weights.reference_models import reference_names
 
         if self.train:
             return None
@@ -158,7 +158,7 @@ def inference_start(cfg: DemoConfig) -> str:
     if cfg.reference is None:
         return cfg.start
     from cosy_lite.inference.settings import inference_config
-    from cosy_lite.model_files.reference_models import reference_models
+    from cosy_lite.weights.reference_models import reference_models
 
     ref = reference_models(cfg.reference)
     return inference_config(ref.inference, ref.pipeline_path).start
@@ -534,7 +534,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from cosy_lite.bop.params import RENAMED_DATASETS, renamed_dataset_message
     from cosy_lite.errors import BopFormatError
-    from cosy_lite.model_files.reference_models import reference_models
+    from cosy_lite.weights.reference_models import reference_models
 
     if args.dataset in RENAMED_DATASETS:
         raise BopFormatError((args.data_root or DemoConfig.data_root) / args.dataset, "--dataset",

@@ -187,7 +187,7 @@ class Run:
         self.metrics["cosypose"] = COSYPOSE
 
     def export_weights(self) -> None:
-        from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint, save_weights
+        from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint, save_weights
 
         for model, job in self.plan.jobs.items():
             src = self.runs / model / "checkpoint.pt"

@@ -8,7 +8,7 @@ plus the command, the machine, the items seen (the checkpoint's count, including
 was initialised from with --init; else steps x batch x processes), the --init record and any metric JSON files
 given (merged under "metrics"). Folder: ``--out``, default ``models/NAME/`` of this
 checkout (shipped in the package as data; ``$COSY_LITE_MODELS/NAME/`` when that is set), see
-cosy_lite.model_files.reference_models.
+cosy_lite.weights.reference_models.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ def default_folder(name: str) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cosy_lite.model_files.checkpoint import load_checkpoint
-    from cosy_lite.model_files.reference_models import publish
+    from cosy_lite.weights.checkpoint import load_checkpoint
+    from cosy_lite.weights.reference_models import publish
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", type=Path, required=True)

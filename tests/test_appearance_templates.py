@@ -11,9 +11,9 @@ import torch
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.geometry.symmetries import rotation_errors_deg
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.models.appearance_templates import AppearanceTemplates, square_crops, textured_obj_ids
-from cosy_lite.models.silhouette_templates import SilhouetteTemplates
-from cosy_lite.render.renderer import PyrenderRenderer
+from cosy_lite.nets.appearance_templates import AppearanceTemplates, square_crops, textured_obj_ids
+from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
+from cosy_lite.render.renderer import GlRenderer
 
 K = np.array([[572.4, 0.0, 320.0], [0.0, 573.6, 240.0], [0.0, 0.0, 1.0]])
 CRACKER_BOX = 2  # textured (YCB 003): a box whose silhouette is the same upside down
@@ -28,7 +28,7 @@ def _rot(axis: str, deg: float) -> np.ndarray:
 @pytest.fixture(scope="module")
 def scene(tiny_synth_root):
     ds = BopDataset(tiny_synth_root)
-    renderer = PyrenderRenderer.from_dataset(ds, shading="headlight")
+    renderer = GlRenderer.from_dataset(ds, shading="headlight")
     upright = _rot("y", 90)  # the printed front towards the camera
     flipped = _rot("z", 180) @ upright  # the same silhouette turned about the viewing axis
     yield renderer, upright, flipped, float(ds.models_info[CRACKER_BOX].diameter)
@@ -67,7 +67,7 @@ def test_appearance_picks_the_upright_box_and_silhouettes_cannot(scene):
 
 
 def _box(mask):
-    from cosy_lite.models.silhouette_templates import mask_boxes
+    from cosy_lite.nets.silhouette_templates import mask_boxes
 
     return mask_boxes(mask[None])[0]
 
@@ -129,8 +129,8 @@ def test_textured_objects_are_the_ones_with_a_print(scene, tiny_synth_root):
 def test_score_start_measures_the_start_stage(tiny_synth_root):
     """cosy-lite score-start on the tiny test split: GT masks through the start stage of infer (two
     appearance candidates, the refiner's confidence choosing); the numbers are shares and agree."""
-    from cosy_lite.model_files.reference_models import reference_models
     from cosy_lite.reference.score_start import score_start
+    from cosy_lite.weights.reference_models import reference_models
 
     out = score_start(tiny_synth_root, "appearance", n_candidates=2, refiner=reference_models("ycbvsynth").path("refiner"),
                       min_visib=0.3, n=3, progress=False)
@@ -140,8 +140,8 @@ def test_score_start_measures_the_start_stage(tiny_synth_root):
 
 
 def _scorer_file(path, obj_ids=(1, 2, 5, 8), shading="headlight", scale=1.0):
-    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
-    from cosy_lite.models.appearance_scorer import AppearanceScorer
+    from cosy_lite.nets.appearance_scorer import AppearanceScorer
+    from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
 
     net = AppearanceScorer(load_pretrained=True)
     with torch.no_grad():
@@ -153,7 +153,7 @@ def _scorer_file(path, obj_ids=(1, 2, 5, 8), shading="headlight", scale=1.0):
 
 
 def test_a_trained_scorer_describes_the_detection_and_brings_its_iou_weight(scene, tmp_path):
-    from cosy_lite.model_files.loaders import load_scorer
+    from cosy_lite.weights.loaders import load_scorer
 
     renderer, upright, flipped, diameter = scene
     rgb, mask, _ = _image(renderer, upright)
@@ -192,8 +192,8 @@ def test_a_scorer_that_does_not_fit_the_pipeline_is_refused_by_name(tiny_synth_r
 
 def _refiner_file(root, path):
     from cosy_lite.config import load_config
-    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
     from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
+    from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
 
     cfg = load_config(PoseTrainConfig, None, ["net.arch=flow", "net.backbone=efficientnet_lite0", "net.render_shading=headlight",
                                               "net.crop_resolution=[64,96]",

@@ -20,7 +20,7 @@ import pytest
 import torch
 from bop_fixtures import write_tiny_bop
 
-from cosy_lite.model_files.checkpoint import CHECKPOINT_FORMAT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.weights.checkpoint import CHECKPOINT_FORMAT, Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -266,7 +266,7 @@ CARD_PROBLEMS = {
 @pytest.fixture
 def set_copy(tmp_path, monkeypatch) -> Path:
     """A copy of the shipped set ``ycbvsynth`` under ``$COSY_LITE_MODELS`` (the shipped files stay as they are)."""
-    from cosy_lite.model_files.reference_models import reference_root
+    from cosy_lite.weights.reference_models import reference_root
 
     folder = tmp_path / "sets" / SET
     shutil.copytree(reference_root() / SET, folder)
@@ -308,8 +308,8 @@ def test_a_weights_file_without_its_card_is_refused(set_copy, tmp_path, capsys):
 ], ids=["obj-ids-a-string", "obj-id-zero", "net-a-string", "label-map-ids-a-string"])
 def test_mistyped_metadata_of_a_weights_file_names_the_field(tmp_path, capsys, kind, meta, fld, words):
     from cosy_lite.cli import main
-    from cosy_lite.model_files.checkpoint import load_weights, save_weights
-    from cosy_lite.model_files.reference_models import reference_models
+    from cosy_lite.weights.checkpoint import load_weights, save_weights
+    from cosy_lite.weights.reference_models import reference_models
 
     ckpt = load_weights(reference_models(SET).path(kind))
     ckpt.meta.update(meta)

@@ -20,10 +20,10 @@ from cosy_lite.bop.detections import Detections, degenerate_boxes
 from cosy_lite.bop.results import read_results_csv
 from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.bop_run import run_on_split
-from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer
+from cosy_lite.inference.object_meshes import ObjectMeshes, objects_and_renderer
 from cosy_lite.inference.predictor import Predictor
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.model_files.loaders import PoseModel
+from cosy_lite.weights.loaders import PoseModel
 
 CROP = (60, 80)
 MAX_DEPTH_M = 10.0  # the fixture's objects are 0.7-0.9 m away
@@ -43,7 +43,7 @@ def dataset(tmp_path_factory) -> BopDataset:
 
 @pytest.fixture(scope="module")
 def predictor(dataset) -> Predictor:
-    objects, renderer, _ = objects_and_renderer(ObjectModels(dataset.models_dir), [1, 2], 200, icp=False)
+    objects, renderer, _ = objects_and_renderer(ObjectMeshes(dataset.models_dir), [1, 2], 200, icp=False)
     return Predictor(PoseModel(_Still(), "coarse", CROP, [1, 2]), None, objects, renderer,
                      config=InferenceConfig(n_refiner_iterations=0))
 

@@ -16,10 +16,10 @@ import torch
 from toy_task import ToyTask
 
 from cosy_lite.errors import ConfigError
-from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint
 from cosy_lite.train.loop import LoopConfig, train
 from cosy_lite.train.run_log import read_log
 from cosy_lite.train.schedule import OptimConfig
+from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint
 
 VOLATILE = ("items_per_s", "elapsed_s")  # wall-clock values: differ between runs
 # Each run is a real process (SIGKILL ends it as kill -9 does), forked by a forkserver that has
@@ -204,7 +204,7 @@ def test_non_finite_loss_is_an_expected_error_naming_the_run(tmp_path):
 
 
 def test_resume_from_a_checkpoint_of_another_model_names_the_file(tmp_path):
-    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
+    from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
 
     _run(tmp_path, steps=5)
     ck = load_checkpoint(tmp_path / "checkpoint.pt")

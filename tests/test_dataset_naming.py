@@ -14,6 +14,7 @@ import pytest
 from bop_fixtures import write_tiny_bop
 
 from cosy_lite.bop.dataset import BopDataset
+from cosy_lite.bop.folders import dataset_folder
 from cosy_lite.bop.params import DATASETS, RENAMED_DATASETS, get_dataset_params
 from cosy_lite.bop.results import (
     PoseEstimate,
@@ -25,7 +26,6 @@ from cosy_lite.bop.results import (
 )
 from cosy_lite.bop.validate import check_results
 from cosy_lite.errors import BopFormatError
-from cosy_lite.synth.command import dataset_folder
 
 
 def test_no_dataset_name_has_a_toolkit_separator():

@@ -4,7 +4,7 @@ and a mask empty at 0.5 taken at half its own peak instead of nothing."""
 import numpy as np
 import pytest
 
-from cosy_lite.models.detection_masks import binary_masks
+from cosy_lite.nets.detection_masks import binary_masks
 
 
 def test_threshold_and_the_fallback_for_masks_empty_at_one_half():

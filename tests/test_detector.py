@@ -10,7 +10,7 @@ import torch
 from torchvision.ops import FrozenBatchNorm2d, box_iou
 
 from cosy_lite.bop.detections import Detections
-from cosy_lite.models.detector import (
+from cosy_lite.nets.detector import (
     DETECTORS,
     Detector,
     DetectorConfig,

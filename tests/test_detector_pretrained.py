@@ -2,8 +2,8 @@
 
 import torch
 
-from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap, detect, detector_losses
-from cosy_lite.models.pretrained import timm_state_dict
+from cosy_lite.nets.detector import Detector, DetectorConfig, LabelMap, detect, detector_losses
+from cosy_lite.nets.pretrained import timm_state_dict
 
 SMALL = dict(name="maskrcnn_lite0_fpn", fpn_channels=32, mask_head_channels=32, box_head_size=128, min_size=96,
              max_size=128, anchor_sizes=[16, 32, 64, 128, 256], rpn_pre_nms_top_n_train=100,

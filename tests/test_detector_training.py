@@ -12,11 +12,11 @@ import torch
 
 from cosy_lite.bop import io
 from cosy_lite.config import load_config
-from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
-from cosy_lite.model_files.loaders import load_detector
-from cosy_lite.models.detector import Detector, detect
+from cosy_lite.nets.detector import Detector, detect
 from cosy_lite.train.detector_task import DetectorTask, DetectorTrainConfig
 from cosy_lite.train.loop import train
+from cosy_lite.weights.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.weights.loaders import load_detector
 
 # 640x480 images scaled to 96x128, narrow heads, few proposals: a step takes ~0.1 s.
 SMALL = ["detector.name=maskrcnn_resnet18_fpn", "detector.fpn_channels=32", "detector.mask_head_channels=32",
@@ -98,7 +98,7 @@ def test_few_steps_through_the_loop_lower_the_loss_and_checkpoint_reloads(tiny_s
 def test_bad_checkpoints_name_the_file_and_the_problem(tmp_path):
     torch.manual_seed(0)
     cfg = load_config(DetectorTrainConfig, None, SMALL)
-    from cosy_lite.models.detector import LabelMap
+    from cosy_lite.nets.detector import LabelMap
 
     det = Detector(LabelMap((1, 2)), cfg.detector)
     good = Checkpoint(kind="detector", model=det.state_dict(), config={}, step=1, meta=det.meta())

@@ -81,10 +81,10 @@ def test_bad_requests_raise(renderer):
 def test_closing_a_renderer_keeps_the_others_working(renderer):
     # close() destroys its own EGL context only: eglTerminate would kill every context of the display.
     from cosy_lite.eval.depth_renderer import WindowDepthRenderer
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.render.renderer import GlRenderer
 
     box = trimesh.creation.box(extents=2 * HALF)
-    pyr = PyrenderRenderer({3: box})
+    pyr = GlRenderer({3: box})
     T = _pose([0.0, 0.0, 0.5])
     n_pyr = np.count_nonzero(pyr.render([3], T[None], K, (H, W), depth_only=True).depth)
     with WindowDepthRenderer({3: (box.vertices, box.faces)}, W, H) as other:

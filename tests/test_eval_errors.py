@@ -152,9 +152,9 @@ def _renderer():
     import trimesh
 
     try:
-        from cosy_lite.render.renderer import PyrenderRenderer
+        from cosy_lite.render.renderer import GlRenderer
 
-        r = PyrenderRenderer({1: trimesh.creation.box(extents=2 * HALF)})
+        r = GlRenderer({1: trimesh.creation.box(extents=2 * HALF)})
         r.render([1], _pose()[None], K, (480, 640), depth_only=True)
     except Exception as e:  # no EGL / OpenGL on this machine
         pytest.skip(f"offscreen rendering unavailable: {e}")

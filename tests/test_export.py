@@ -21,9 +21,9 @@ onnx = pytest.importorskip("onnx")
 
 from cosy_lite.export.manifest import Manifest, OnnxModelError  # noqa: E402
 from cosy_lite.export.onnx_export import export_detector, export_pose_net  # noqa: E402
-from cosy_lite.export.onnx_models import OnnxDetector, OnnxPoseNet  # noqa: E402
+from cosy_lite.inference.onnx_runtime import OnnxDetector, OnnxPoseNet  # noqa: E402
 from cosy_lite.inference.settings import InferenceConfig  # noqa: E402
-from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
+from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
 
 OBJ_IDS = [1, 2, 5, 8]  # the tiny synthetic dataset's objects
 CROP = (48, 64)
@@ -34,7 +34,7 @@ DETECTOR = dict(name="maskrcnn_mobilenet_v3_large_fpn", fpn_channels=32, mask_he
 
 def _pose_net(seed: int, head_std: float = 0.01) -> nn.Module:
     """A resnet18 PoseNet with a random head and BatchNorm statistics (a fresh one outputs zeros)."""
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     torch.manual_seed(seed)
     net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=list(CROP))).eval()
@@ -48,7 +48,7 @@ def _pose_net(seed: int, head_std: float = 0.01) -> nn.Module:
 
 
 def _save_pose_ckpt(path: Path, kind: str, seed: int, obj_ids=OBJ_IDS, head_std: float = 0.01) -> Path:
-    from cosy_lite.model_files.pose_nets import PoseNetConfig
+    from cosy_lite.weights.pose_nets import PoseNetConfig
 
     cfg = PoseNetConfig(backbone="resnet18", crop_resolution=list(CROP))
     meta = {"obj_ids": list(obj_ids), "net": asdict(cfg), "dataset": "tiny", "model": kind}
@@ -58,7 +58,7 @@ def _save_pose_ckpt(path: Path, kind: str, seed: int, obj_ids=OBJ_IDS, head_std:
 
 
 def _detector():
-    from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap
+    from cosy_lite.nets.detector import Detector, DetectorConfig, LabelMap
 
     torch.manual_seed(0)
     return Detector(LabelMap(tuple(OBJ_IDS)), DetectorConfig(**DETECTOR)).eval()
@@ -169,7 +169,7 @@ def test_separable_mask_paste_equals_torchvision():
 
 
 def test_detector_matches_torch(tmp_path):
-    from cosy_lite.models.detector import detect
+    from cosy_lite.nets.detector import detect
 
     model = _detector()
     entry = export_detector(model, tmp_path / "detector.onnx")
@@ -193,7 +193,7 @@ def test_detector_matches_torch(tmp_path):
 
 
 def test_manifest_and_metadata_round_trip(export):
-    from cosy_lite.export.onnx_models import load_onnx_models
+    from cosy_lite.inference.onnx_runtime import load_onnx_models
 
     manifest = Manifest.read(export["models"])
     assert set(manifest.models) == {"detector", "coarse", "refiner", "coarse.int8", "refiner.int8"}
@@ -221,7 +221,7 @@ def test_manifest_and_metadata_round_trip(export):
 
 
 def test_broken_files_give_errors_naming_file_and_field(export, tmp_path):
-    from cosy_lite.export.onnx_models import load_onnx_models
+    from cosy_lite.inference.onnx_runtime import load_onnx_models
 
     def error(root: Path, **kwargs) -> OnnxModelError:
         with pytest.raises(OnnxModelError) as e:
@@ -267,7 +267,7 @@ def test_broken_files_give_errors_naming_file_and_field(export, tmp_path):
 
 
 def test_mismatched_manifest_gives_errors_naming_file_and_field(export, tmp_path):
-    from cosy_lite.export.onnx_models import load_onnx_models
+    from cosy_lite.inference.onnx_runtime import load_onnx_models
 
     def edited(name: str, edit) -> Path:
         root = _copy_export(export["models"], tmp_path / name)
@@ -296,7 +296,7 @@ def test_mismatched_manifest_gives_errors_naming_file_and_field(export, tmp_path
 
 def test_a_graph_with_three_input_channels_is_refused(tmp_path):
     from cosy_lite.export.manifest import ModelEntry, metadata_of, write_metadata
-    from cosy_lite.models.pose_net import PoseNet
+    from cosy_lite.nets.pose_net import PoseNet
 
     net = PoseNet("resnet18", in_channels=3).eval()
     path = tmp_path / "rgb_only.onnx"
@@ -333,7 +333,7 @@ def test_onnx_backend_gives_the_torch_poses(tiny_synth_root, export, tmp_path, c
     iteration: the same rows, translations within 0.3 mm, rotation matrices within 3e-4 per entry."""
     import infer
     from cosy_lite.bop.results import read_results_csv
-    from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS
+    from cosy_lite.nets.initial_pose import CANONICAL_ROTATIONS
 
     common = ["--dataset", str(tiny_synth_root), "--detections", "oracle", "--n-refiner-iters", "1",
               "--no-progress", "--threads", "1"]
@@ -380,13 +380,26 @@ def test_onnx_detector_feeds_the_predictor(tiny_synth_root, export):
     assert float((est.TCO - est_ref.TCO).abs().max()) <= 1e-4
 
 
+def test_infer_runs_a_split_with_the_exported_detector(tiny_synth_root, export, tmp_path):
+    """``infer --onnx DIR`` without --detections: the export's detector finds the objects, and its
+    obj_ids are checked against the split's targets as the torch detector's are."""
+    import infer
+    from cosy_lite.bop.results import read_results_csv
+
+    rc = infer.main(["--dataset", str(tiny_synth_root), "--onnx", str(export["models"]), "--n-refiner-iters", "0",
+                     "--limit-images", "1", "--no-progress", "--threads", "1", "--out", str(tmp_path / "o")])
+    assert rc == 0
+    rows = read_results_csv(next((tmp_path / "o").glob("*.csv")))
+    assert {r.obj_id for r in rows} <= set(OBJ_IDS)
+
+
 def test_flow_refiner_exports_and_gives_the_torch_poses(tiny_synth_root, tmp_path):
     """A flow refiner (net.arch=flow) through infer.py: checkpoints vs their ONNX export (the numpy
     solver on the onnxruntime path), oracle boxes, coarse + 1 refiner iteration: the same poses (a
     random flow network's field is rough, so the solver amplifies the ~1e-6 network differences)."""
     import infer
     from cosy_lite.bop.results import read_results_csv
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     cfg = PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[48, 64], corr_radius=2, width=16)
     torch.manual_seed(3)

@@ -8,11 +8,11 @@ import torch
 
 from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.rotations import rotation_angle_deg
-from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
-from cosy_lite.models.flow_pose_net import FlowPoseNet, flow_from_cost, local_cost_volume
-from cosy_lite.models.flow_pose_solver import MIN_CELLS, pose_from_flow
-from cosy_lite.models.flow_targets import FlowTargets, flow_loss, flow_targets
-from cosy_lite.models.initial_pose import add_pose_noise
+from cosy_lite.nets.flow_pose_net import FlowPoseNet, flow_from_cost, local_cost_volume
+from cosy_lite.nets.flow_pose_solver import MIN_CELLS, pose_from_flow
+from cosy_lite.nets.flow_targets import FlowTargets, flow_loss, flow_targets
+from cosy_lite.nets.initial_pose import add_pose_noise
+from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
 H, W, S = 96, 128, 8
 
@@ -182,7 +182,7 @@ def test_config_checks_name_the_field(tiny_synth_root):
 def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
     """Training on the flow loss lowers it, and the fitted network's flow moves the poses towards the GT."""
     from cosy_lite.config import load_config
-    from cosy_lite.models.render_and_compare import iterate_poses
+    from cosy_lite.nets.render_and_compare import iterate_poses
     from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, pose_errors
 
     cfg = load_config(PoseTrainConfig, None, [

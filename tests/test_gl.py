@@ -10,7 +10,7 @@ import trimesh
 
 from cosy_lite.eval.depth_renderer import Window, WindowDepthRenderer
 from cosy_lite.render.gl import projection_matrices
-from cosy_lite.render.renderer import PyrenderRenderer
+from cosy_lite.render.renderer import GlRenderer
 
 BOX, SPHERE = 1, 2
 K = np.array([[220.0, 0.0, 81.3], [0.0, 215.0, 58.9], [0.0, 0.0, 1.0]])
@@ -42,10 +42,10 @@ class Kinds:
 
         meshes = _meshes()
         make = {
-            "render_and_compare": lambda: PyrenderRenderer(meshes, shading="headlight"),
+            "render_and_compare": lambda: GlRenderer(meshes, shading="headlight"),
             "depth_windows": lambda: WindowDepthRenderer(
                 {i: (m.vertices, m.faces) for i, m in meshes.items()}, RES[1], RES[0]),
-            "pictures": lambda: PyrenderRenderer(meshes),
+            "pictures": lambda: GlRenderer(meshes),
             "lit_scenes": lambda: OffscreenSceneRenderer(RES[1], RES[0]),
         }
         self.renderers = {}
@@ -108,7 +108,7 @@ def test_closing_one_renderer_leaves_the_others_rendering_the_same(closed: str, 
             if kind != closed:
                 for a, b in zip(kinds.render(kind), before[kind]):
                     np.testing.assert_array_equal(a, b, err_msg=f"{kind} after closing {closed}")
-        if closed != "lit_scenes":  # a closed PyrenderRenderer makes a new context on its next render
+        if closed != "lit_scenes":  # a closed GlRenderer makes a new context on its next render
             for a, b in zip(kinds.render(closed), before[closed]):
                 np.testing.assert_array_equal(a, b)
     finally:
@@ -119,7 +119,7 @@ def test_window_pass_samples_the_pixels_of_a_full_render():
     """The evaluator's pass (window y = H - v, clip = P (MV p)) and the crops' pass (window y = v,
     one MVP) cover the same pixel centres, with the same camera z up to float32 rounding."""
     meshes = _meshes()
-    with PyrenderRenderer(meshes, cull_back_faces=False) as r:
+    with GlRenderer(meshes, cull_back_faces=False) as r:
         full = r.render([BOX, SPHERE], POSES, K, RES, depth_only=True).depth
         for i, (obj_id, T) in enumerate(zip([BOX, SPHERE], POSES)):
             window = r.render_depth_window(obj_id, T, K, RES, (0, 0, RES[1], RES[0]), znear=0.2, zfar=1.5)

@@ -78,7 +78,7 @@ def test_training_summary_of_a_run_killed_mid_line(tmp_path):
 
 
 def test_dry_run_runs_every_step_and_hands_back_loadable_weights(tmp_path):
-    from cosy_lite.model_files.checkpoint import load_checkpoint
+    from cosy_lite.weights.checkpoint import load_checkpoint
 
     out = tmp_path / "out"
     env = {**os.environ, "PYTHON": sys.executable, "OMP_NUM_THREADS": "1"}

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from cosy_lite.inference.icp import IcpConfig, IcpResult, depth_agreement, refine_pose_icp, refine_poses_icp, rotation_angle_deg
-from cosy_lite.render.renderer import PyrenderRenderer
+from cosy_lite.render.renderer import GlRenderer
 
 MUSTARD, DRILL, PLANE, OCCLUDER, CAN = 5, 15, 90, 91, 92  # YCB-V mustard bottle and power drill: no symmetry
 K = np.array([[1066.778, 0.0, 312.9869], [0.0, 1067.487, 241.3109], [0.0, 0.0, 1.0]])  # YCB-V camera
@@ -46,7 +46,7 @@ def renderer():
         PLANE: trimesh.creation.box(extents=(3.0, 3.0, 0.01)), OCCLUDER: trimesh.creation.box(extents=(0.2, 0.05, 0.05)),
         CAN: trimesh.creation.cylinder(radius=0.04, height=0.12, sections=64),
     }
-    with PyrenderRenderer(meshes=meshes) as r:
+    with GlRenderer(meshes=meshes) as r:
         yield r
 
 

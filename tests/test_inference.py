@@ -21,16 +21,16 @@ from cosy_lite.inference.bop_run import run_on_split
 from cosy_lite.inference.predictor import TIMING_KEYS, Predictor
 from cosy_lite.inference.settings import InferenceConfig
 from cosy_lite.inference.vivo import select_top_instances, targets_by_image
-from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
-from cosy_lite.model_files.loaders import PoseModel
-from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
+from cosy_lite.nets.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
+from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
+from cosy_lite.weights.loaders import PoseModel
 
 OBJ_IDS = [1, 2, 5, 8]
 CROP = [60, 80]
 
 
 def _save_pose_ckpt(path: Path, kind: str, obj_ids=OBJ_IDS) -> Path:
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     torch.manual_seed(0)
     cfg = PoseNetConfig(backbone="resnet18", crop_resolution=CROP)
@@ -42,7 +42,7 @@ def _save_pose_ckpt(path: Path, kind: str, obj_ids=OBJ_IDS) -> Path:
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory) -> dict[str, Path]:
     """Untrained checkpoints: the pose nets' zero-initialised heads make every update the identity."""
-    from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap
+    from cosy_lite.nets.detector import Detector, DetectorConfig, LabelMap
 
     d = tmp_path_factory.mktemp("ckpts")
     torch.manual_seed(0)
@@ -315,7 +315,7 @@ def test_the_detector_feeds_predict_and_the_vivo_run(tiny_synth_root, ckpts, tmp
 
 def test_inference_net_folds_batchnorm_without_changing_outputs():
     from cosy_lite.inference.predictor import inference_net
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     torch.manual_seed(0)
     net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=CROP)).eval()

@@ -78,7 +78,7 @@ def _rows(path: Path) -> list[dict[str, str]]:
 def test_the_installed_copy_is_imported_and_carries_its_configs_and_reference_models(site, work):
     code = ("import cosy_lite, json; from cosy_lite.config import packaged_config; "
             "from cosy_lite.train.command import default_config_path; "
-            "from cosy_lite.model_files.reference_models import reference_models, reference_root; "
+            "from cosy_lite.weights.reference_models import reference_models, reference_root; "
             "ref = reference_models('ycbvsynth'); "
             "print(json.dumps({'package': cosy_lite.__file__, 'root': str(reference_root()), "
             "'weights': [str(p) for p in ref.weights.values()], 'tiny': str(packaged_config('synth', 'tiny.yaml')), "

@@ -11,8 +11,8 @@ import torch
 from cosy_lite.bop.io import ModelInfo
 from cosy_lite.geometry.points import object_symmetries, sample_model_points, symmetry_tensor
 from cosy_lite.geometry.rotations import axis_angle_to_matrix, random_rotations
-from cosy_lite.models.losses import closest_symmetric_pose, disentangled_loss
-from cosy_lite.models.pose_update import apply_pose_update, pose_update_targets, rotation_update
+from cosy_lite.nets.losses import closest_symmetric_pose, disentangled_loss
+from cosy_lite.nets.pose_update import apply_pose_update, pose_update_targets, rotation_update
 
 F64 = torch.float64
 
@@ -304,7 +304,7 @@ def test_autocast_does_not_reach_poses_or_loss():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_same_numbers_on_cuda():
     from cosy_lite.geometry.crops import crop_boxes, crop_images, crop_intrinsics
-    from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
+    from cosy_lite.nets.initial_pose import add_pose_noise, initial_pose_from_boxes
 
     args = _float32_case()
     cpu = disentangled_loss(*args)

@@ -1,5 +1,5 @@
 """Closed-loop oracle test of the render-and-compare chain (crop -> render -> network -> pose update),
-in the one loop of both predictor backends (:func:`cosy_lite.models.render_and_compare.iterate_poses`).
+in the one loop of both predictor backends (:func:`cosy_lite.nets.render_and_compare.iterate_poses`).
 
 An analytic "network" (:class:`Oracle`) stands in for the coarse and the refiner net. Like a real
 net it sees only the ``[B,6,h,w]`` input: the observed crop (channels 0-2) and the rendering at
@@ -37,8 +37,8 @@ from cosy_lite.inference.predictor import Predictor
 
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.model_files.loaders import PoseModel
-from cosy_lite.models import render_and_compare
+from cosy_lite.nets import render_and_compare
+from cosy_lite.weights.loaders import PoseModel
 
 H, W = 192, 256  # image (px): at most 256 wide and high, so the uint8 ramp holds every pixel index
 K = np.array([[262.0, 0.0, 128.4], [0.0, 255.0, 95.6], [0.0, 0.0, 1.0]])
@@ -279,8 +279,8 @@ def make_scene() -> Scene:
     """Box (id 1) and cylinder (id 2) at GT poses 0.55-0.6 m away, their renderer, the ramp image."""
     import trimesh
 
-    from cosy_lite.models.object_table import ObjectTable
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.render.renderer import GlRenderer
 
     rng = np.random.default_rng(0)
     meshes = {1: trimesh.creation.box(extents=(0.08, 0.05, 0.03)),
@@ -304,7 +304,7 @@ def make_scene() -> Scene:
     boxes = np.stack([np.concatenate([uv.min(axis=0), uv.max(axis=0)])
                       for uv in (project(T, K, vertices[i]) for T, i in zip(TCO_gt, ids))])
     boxes = boxes.astype(np.float32).astype(np.float64)  # Detections hold float32
-    renderer = PyrenderRenderer(meshes=meshes)
+    renderer = GlRenderer(meshes=meshes)
     return Scene(ids, TCO_gt, boxes, vertices, points, diameters, objects, renderer, ramp_image())
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from cosy_lite.models.backbones import BACKBONES, Backbone
-from cosy_lite.models.pose_net import PoseNet
+from cosy_lite.nets.backbones import BACKBONES, Backbone
+from cosy_lite.nets.pose_net import PoseNet
 
 H, W = 120, 160
 FEATURES = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "efficientnet_b0": 1280,

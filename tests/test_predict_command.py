@@ -19,15 +19,15 @@ from test_inference import OBJ_IDS, _save_pose_ckpt  # the tiny checkpoints of t
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.bop.results import read_results_csv
 from cosy_lite.cli import main as cli
-from cosy_lite.models.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
+from cosy_lite.nets.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
 
 
 @pytest.fixture(scope="module")
 def setup(tiny_synth_root, tmp_path_factory) -> dict:
     """Checkpoints, an export folder, one test image with its camera file and GT-box detections."""
     from cosy_lite.export.onnx_export import export_models
-    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
-    from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap
+    from cosy_lite.nets.detector import Detector, DetectorConfig, LabelMap
+    from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
 
     d = tmp_path_factory.mktemp("predict")
     torch.manual_seed(0)

@@ -7,8 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cosy_lite.models import pretrained
-from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD
+from cosy_lite.nets import pretrained
+from cosy_lite.nets.pose_net import IMAGENET_MEAN, IMAGENET_STD
 
 
 def _imagenet_input(image: np.ndarray) -> torch.Tensor:

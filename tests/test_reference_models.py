@@ -25,9 +25,9 @@ import torch
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.predictor import Predictor
 from cosy_lite.inference.settings import InferenceConfig, inference_config, pretrained_config
-from cosy_lite.model_files.checkpoint import shard_paths
-from cosy_lite.model_files.reference_models import ReferenceModelError, reference_models, reference_names, reference_root
-from cosy_lite.models import flow_pose_solver, render_and_compare
+from cosy_lite.nets import flow_pose_solver, render_and_compare
+from cosy_lite.weights.checkpoint import shard_paths
+from cosy_lite.weights.reference_models import ReferenceModelError, reference_models, reference_names, reference_root
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "ycbvsynth"
@@ -86,8 +86,8 @@ def test_unknown_or_broken_sets_name_the_problem(tmp_path):
 
 
 def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_path):
-    from cosy_lite.model_files.checkpoint import Checkpoint, load_weights, save_checkpoint
-    from cosy_lite.model_files.reference_models import publish
+    from cosy_lite.weights.checkpoint import Checkpoint, load_weights, save_checkpoint
+    from cosy_lite.weights.reference_models import publish
 
     ckpt = Checkpoint(kind="refiner", model={"w": torch.linspace(-1, 1, 12).reshape(3, 4), "n": torch.tensor(7)},
                       config={"dataset": "toy", "loop": {"batch_size": 8}}, step=42,
@@ -110,7 +110,7 @@ def test_publish_writes_fp16_weights_and_a_card_and_keeps_unchanged_weights(tmp_
 
 
 def test_each_weights_file_is_hashed_once_per_process(tmp_path):
-    from cosy_lite.model_files import reference_models as catalog
+    from cosy_lite.weights import reference_models as catalog
 
     catalog._sha256.cache_clear()
     reference_models(NAME)

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from cosy_lite.render.renderer import PyrenderRenderer, RenderOutput, check_render_inputs
+from cosy_lite.render.renderer import GlRenderer, RenderOutput, check_render_inputs
 
 SPHERE, BOX, QUAD, YCB = 1, 2, 3, 4
 BOX_EXTENTS = (0.10, 0.08, 0.06)
@@ -61,7 +61,7 @@ def meshes() -> dict[int, trimesh.Trimesh]:
 
 @pytest.fixture(scope="module")
 def renderer(meshes):
-    with PyrenderRenderer(meshes) as r:
+    with GlRenderer(meshes) as r:
         yield r
 
 
@@ -111,7 +111,7 @@ def test_depth_of_a_box_is_its_front_face(meshes, cull):
     """Head-on, only the front face is seen: depth = t_z - extent_z / 2 everywhere on the mask
     (with forced culling this also checks the front-face winding convention)."""
     T = _T(t=(0.0, 0.0, 0.7))
-    with PyrenderRenderer({BOX: meshes[BOX]}, cull_back_faces=cull) as r:
+    with GlRenderer({BOX: meshes[BOX]}, cull_back_faces=cull) as r:
         out = r.render([BOX], T[None], K, RES)
     depth, mask = out.depth[0], out.mask[0]
     assert 0.9 * 410 * 0.10 / 0.67 * 395 * 0.08 / 0.67 < mask.sum()
@@ -129,7 +129,7 @@ def test_culling_is_not_used_where_it_would_show(meshes):
     T = _T(t=(0.0, 0.0, 0.5))[None]
     depth = {}
     for cull in (None, False, True):
-        with PyrenderRenderer({SPHERE: inverted}, cull_back_faces=cull) as r:
+        with GlRenderer({SPHERE: inverted}, cull_back_faces=cull) as r:
             depth[cull] = r.render([SPHERE], T, K, RES).depth[0]
     np.testing.assert_array_equal(depth[None], depth[False])
     centre = depth[False][int(K[1, 2]), int(K[0, 2])]
@@ -181,7 +181,7 @@ def test_face_colours_and_a_material_colour():
     plain = trimesh.creation.box(extents=BOX_EXTENTS)
     material = trimesh.visual.material.SimpleMaterial(diffuse=[10, 200, 30, 255])
     plain.visual = trimesh.visual.TextureVisuals(material=material)
-    with PyrenderRenderer({1: box, 2: plain}) as r:
+    with GlRenderer({1: box, 2: plain}) as r:
         out = r.render([1, 2], np.stack([_T(t=(0.0, 0.0, 0.7))] * 2), K, RES)
     for i, rgb in enumerate([(0, 255, 0), (10, 200, 30)]):
         assert out.mask[i].sum() > 1000
@@ -219,7 +219,7 @@ def test_batch_equals_items_one_by_one(renderer):
     np.testing.assert_array_equal(only.depth, batch.depth)
     np.testing.assert_array_equal(batch.mask, batch.depth > 0)
     # more crops than framebuffers in flight: drawn in groups, same pixels
-    r = PyrenderRenderer(renderer.meshes, max_in_flight=3)
+    r = GlRenderer(renderer.meshes, max_in_flight=3)
     np.testing.assert_array_equal(r.render(ids, T, Ks, RES).rgb, batch.rgb)
     r.close()
 
@@ -261,7 +261,7 @@ def test_errors_name_the_problem(renderer):
     with pytest.raises(ValueError, match="resolution"):
         check_render_inputs([SPHERE], T, K, (0, 320))
     with pytest.raises(ValueError, match="needs meshes or a models_dir"):
-        PyrenderRenderer()
+        GlRenderer()
     out = renderer.render([], np.zeros((0, 4, 4)), K, RES)
     assert isinstance(out, RenderOutput) and out.rgb.shape == (0, *RES, 3)
 
@@ -271,7 +271,7 @@ def test_from_dataset_reads_bop_models(tmp_path):
 
     from cosy_lite.bop.dataset import BopDataset
 
-    r = PyrenderRenderer.from_dataset(BopDataset(write_tiny_bop(tmp_path)), eval_models=True)
+    r = GlRenderer.from_dataset(BopDataset(write_tiny_bop(tmp_path)), eval_models=True)
     out = r.render([1, 2], np.stack([_T(t=(0, 0, 0.8))] * 2), K, RES)
     for i, obj_id in enumerate((1, 2)):  # box models in mm, read in metres: front face at 0.8 - z/2
         np.testing.assert_allclose(out.depth[i][out.mask[i]], 0.8 - BOX_MM[obj_id][2] / 2000, atol=1e-5)
@@ -317,12 +317,12 @@ def test_closing_a_renderer_leaves_other_contexts_alive(renderer, meshes):
     """close() and garbage collection destroy only the renderer's own context (no eglTerminate)."""
     import gc
 
-    other = PyrenderRenderer({BOX: meshes[BOX]})
+    other = GlRenderer({BOX: meshes[BOX]})
     T = _T(t=(0.0, 0.0, 0.6))[None]
     before = other.render([BOX], T, K, RES, depth_only=True).depth
     try:
         for close in (True, False):
-            r = PyrenderRenderer({BOX: meshes[BOX]})
+            r = GlRenderer({BOX: meshes[BOX]})
             r.render([BOX], T, K, RES)
             if close:
                 r.close()
@@ -369,7 +369,7 @@ def test_headlight_shading_follows_the_face_orientation(meshes):
     from cosy_lite.render.renderer import AMBIENT
 
     head_on, turned = _T(t=(0.0, 0.0, 0.7)), _T(_rot("y", 60.0), t=(0.0, 0.0, 0.7))
-    with PyrenderRenderer({BOX: meshes[BOX]}) as flat, PyrenderRenderer({BOX: meshes[BOX]}, shading="headlight") as lit:
+    with GlRenderer({BOX: meshes[BOX]}) as flat, GlRenderer({BOX: meshes[BOX]}, shading="headlight") as lit:
         poses = np.stack([head_on, turned])
         a, b = flat.render([BOX, BOX], poses, K, RES), lit.render([BOX, BOX], poses, K, RES)
     np.testing.assert_array_equal(a.depth, b.depth)
@@ -381,4 +381,4 @@ def test_headlight_shading_follows_the_face_orientation(meshes):
         assert np.any(np.abs(levels - (AMBIENT + (1 - AMBIENT) * cos)) <= 0.1), (levels, cos)
     assert np.all(b.rgb[1][b.mask[1]] <= np.array(BOX_RGBA[:3]) + 1)
     with pytest.raises(ValueError, match="shading must be one of"):
-        PyrenderRenderer({BOX: meshes[BOX]}, shading="phong")
+        GlRenderer({BOX: meshes[BOX]}, shading="phong")

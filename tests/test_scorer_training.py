@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from cosy_lite.config import load_config
-from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint
-from cosy_lite.model_files.loaders import load_scorer
-from cosy_lite.models.appearance_scorer import listwise_loss
+from cosy_lite.nets.appearance_scorer import listwise_loss
 from cosy_lite.train.loop import train
 from cosy_lite.train.scorer_task import ScorerTask, ScorerTrainConfig, augment_crops
+from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint
+from cosy_lite.weights.loaders import load_scorer
 
 SMALL = ["data.val_images=1", "data.n_templates=64", "loop.batch_size=8", "loop.num_workers=0", "loop.device=cpu",
          "loop.log_every=2", "loop.checkpoint_every=2", "loop.val_every=0", "optim.warmup_steps=1", "optim.lr=1e-3"]
@@ -117,6 +117,6 @@ def test_trained_scorer_resumes_exactly_and_loads_for_inference(tiny_synth_root,
     assert scorer.obj_ids == [1, 2, 5, 8] and not scorer.net.training
     assert torch.equal(scorer.net.iou_weight.detach(), a.model["iou_weight"])
     with pytest.raises(CheckpointError, match="kind"):
-        from cosy_lite.model_files.loaders import load_pose_model
+        from cosy_lite.weights.loaders import load_pose_model
 
         load_pose_model(tmp_path / "a" / "checkpoint.pt", "refiner")

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
-from cosy_lite.models.pretrained import timm_state_dict
-from cosy_lite.models.siamese_pose_net import SiamesePoseNet, local_correlation, spatial_soft_argmax
+from cosy_lite.nets.pretrained import timm_state_dict
+from cosy_lite.nets.siamese_pose_net import SiamesePoseNet, local_correlation, spatial_soft_argmax
+from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
 
 def test_correlation_peaks_at_the_displacement():
@@ -113,8 +113,8 @@ def test_inference_renders_as_the_checkpoint_was_trained(tmp_path, stored, expec
     """Checkpoints from before ``net.render_shading`` existed were trained on flat renderings."""
     from dataclasses import asdict
 
-    from cosy_lite.model_files.checkpoint import Checkpoint, save_checkpoint
-    from cosy_lite.model_files.loaders import load_pose_model
+    from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
+    from cosy_lite.weights.loaders import load_pose_model
 
     cfg = PoseNetConfig(arch="early", backbone="resnet18", crop_resolution=[48, 64])
     net_meta = asdict(cfg)

@@ -13,14 +13,14 @@ from cosy_lite.inference.predictor import Predictor  # noqa: E402
 
 # torchvision before any rendering (see cosy_lite.inference.predictor)
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.model_files.loaders import PoseModel  # noqa: E402
-from cosy_lite.models.silhouette_templates import (  # noqa: E402
+from cosy_lite.nets.silhouette_templates import (  # noqa: E402
     SilhouetteTemplates,
     mask_boxes,
     occupancy_grids,
     random_rotations,
     ray_rotations,
 )
+from cosy_lite.weights.loaders import PoseModel  # noqa: E402
 
 H, W = 480, 640
 K = np.array([[600.0, 0.0, 318.4], [0.0, 605.0, 241.7], [0.0, 0.0, 1.0]])
@@ -46,10 +46,10 @@ def _rotation_error_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def scene():
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.render.renderer import GlRenderer
 
     meshes = _meshes()
-    renderer = PyrenderRenderer(meshes=meshes)
+    renderer = GlRenderer(meshes=meshes)
     ids = [1, 2, 1, 1]
     # 0-17 deg off-axis, inside the image
     t = np.array([[0.0, 0.0, 0.6], [0.13, -0.08, 0.7], [-0.17, 0.1, 0.65], [0.1, 0.08, 0.55]])
@@ -138,7 +138,7 @@ def _detections(scene, with_masks: bool = True):
 
 
 def _predictor(scene, refiner, n_refiner_iterations: int, n_candidates: int, **settings) -> Predictor:
-    from cosy_lite.models.object_table import ObjectTable
+    from cosy_lite.nets.object_table import ObjectTable
 
     points = torch.stack([torch.from_numpy(np.asarray(scene["meshes"][i].sample(200, seed=5))).float() for i in (1, 2)])
     objects = ObjectTable([1, 2], points, torch.eye(4).repeat(2, 1, 1, 1), torch.ones(2, 1, dtype=torch.bool),
@@ -150,7 +150,7 @@ def _predictor(scene, refiner, n_refiner_iterations: int, n_candidates: int, **s
 
 def test_predictor_starts_from_the_matched_template(scene):
     """No refiner iteration: predict returns the best template's pose, as the matcher computes it."""
-    from cosy_lite.models.flow_pose_net import FlowPoseNet
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
     torch.manual_seed(0)
     refiner = PoseModel(FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval(), "refiner", CROP, [1, 2],
@@ -176,9 +176,9 @@ def test_candidates_are_chosen_alike_by_the_torch_and_the_onnx_backend(scene, tm
     more: the start pose is one of the candidates, and both backends agree."""
     pytest.importorskip("onnxruntime")
     from cosy_lite.export.onnx_export import export_pose_net
-    from cosy_lite.export.onnx_models import OnnxPoseNet
+    from cosy_lite.inference.onnx_runtime import OnnxPoseNet
     from cosy_lite.inference.predictor import SetupError
-    from cosy_lite.models.flow_pose_net import FlowPoseNet
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
     torch.manual_seed(0)
     net = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
@@ -195,7 +195,7 @@ def test_candidates_are_chosen_alike_by_the_torch_and_the_onnx_backend(scene, tm
             d = np.abs(candidates[i] - est.TCO_coarse[i].numpy()[None]).max(axis=(1, 2))
             assert d.min() < 1e-5  # the chosen start is one of the candidates
     # the chosen one is the most confident: refine_and_score of all 12 candidates, directly
-    from cosy_lite.models.render_and_compare import refine_and_score
+    from cosy_lite.nets.render_and_compare import refine_and_score
 
     p = _predictor(scene, PoseModel(net, "refiner", CROP, [1, 2], output="flow"), 2, 3)
     flat = torch.from_numpy(candidates.reshape(-1, 4, 4)).float()
@@ -256,14 +256,14 @@ def test_icp_of_every_candidate_leaves_the_rgb_poses_alone(scene, tmp_path, back
     the poses before ICP are those of the RGB-only run (the depth does not leak into them), and the
     pose kept explains the depth at least as well as ICP of the RGB choice alone."""
     from cosy_lite.inference.icp import IcpConfig, depth_agreement
-    from cosy_lite.models.flow_pose_net import FlowPoseNet
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
     torch.manual_seed(0)
     net = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
     if backend == "onnx":
         pytest.importorskip("onnxruntime")
         from cosy_lite.export.onnx_export import export_pose_net
-        from cosy_lite.export.onnx_models import OnnxPoseNet
+        from cosy_lite.inference.onnx_runtime import OnnxPoseNet
 
         export_pose_net(net, tmp_path / "refiner.onnx", "refiner", CROP, [1, 2], config={"arch": "flow"})
         net = OnnxPoseNet(tmp_path / "refiner.onnx", threads=1)

@@ -58,7 +58,7 @@ def test_layout_is_bop(tiny_root: Path):
 
 def _pyrender_depths(renderer, meshes: dict, obj_ids: list[int], TCO: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Depth [B,H,W] of each object alone, rasterised by pyrender as the generator's masks are
-    (its anti-aliased edges differ from the pixel-centre PyrenderRenderer's by up to ~1 % IoU)."""
+    (its anti-aliased edges differ from the pixel-centre GlRenderer's by up to ~1 % IoU)."""
     from cosy_lite.render.gl import CV_TO_GL
     from cosy_lite.render.pyrender_scene import intrinsics_camera, pyrender_module
 

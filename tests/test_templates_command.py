@@ -11,8 +11,8 @@ from cosy_lite.cli import main as cli
 
 def test_the_predictor_reads_the_templates_the_command_rendered(tiny_synth_root, tmp_path, capsys, monkeypatch):
     from cosy_lite.inference.command_templates import render_templates
-    from cosy_lite.inference.object_models import ObjectModels, SetupError, objects_and_renderer, start_templates
-    from cosy_lite.models.silhouette_templates import SilhouetteTemplates
+    from cosy_lite.inference.object_meshes import ObjectMeshes, SetupError, objects_and_renderer, start_templates
+    from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
 
     cache = tmp_path / "templates"
     assert cli(["templates", "--dataset", str(tiny_synth_root), "--cache", str(cache), "--objects", "2,5"]) == 0
@@ -21,7 +21,7 @@ def test_the_predictor_reads_the_templates_the_command_rendered(tiny_synth_root,
     assert len(files) == 2 and files[0].startswith("templates_obj000002_") and files[1].startswith("templates_obj000005_")
 
     # as the predictor builds them (infer --templates-cache): every object found, none rendered
-    models = ObjectModels(tiny_synth_root / "models")
+    models = ObjectMeshes(tiny_synth_root / "models")
     objects, renderer, _ = objects_and_renderer(models, [2, 5], None, icp=False)
     templates = start_templates("templates", models, objects, renderer, cache)
 

@@ -13,10 +13,10 @@ import pytest
 import torch
 from toy_task import ToyTask
 
-from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from cosy_lite.train.loop import LoopConfig, train
 from cosy_lite.train.sampler import StepBatchSampler
 from cosy_lite.train.schedule import OptimConfig, budget_factor, lr_factor
+from cosy_lite.weights.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 

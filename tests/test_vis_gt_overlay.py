@@ -8,7 +8,7 @@ import numpy as np
 from bop_fixtures import NAME, write_tiny_bop
 
 from cosy_lite.bop.dataset import BopDataset
-from cosy_lite.render.renderer import PyrenderRenderer
+from cosy_lite.render.renderer import GlRenderer
 from cosy_lite.vis.gt_overlay import render_gt_overlay
 from cosy_lite.vis.overlay import object_colour
 
@@ -26,6 +26,6 @@ def test_contours_lie_on_the_projected_gt_boxes(tmp_path: Path):
         assert xs.min() >= x - 3 and xs.max() <= x + w + 3 and ys.min() >= y - 3 and ys.max() <= y + h + 3
         assert xs.max() - xs.min() >= w - 6 and ys.max() - ys.min() >= h - 6  # the contour spans the box
 
-    with PyrenderRenderer.from_dataset(ds) as renderer:  # a caller's renderer: used, left open
+    with GlRenderer.from_dataset(ds) as renderer:  # a caller's renderer: used, left open
         np.testing.assert_array_equal(render_gt_overlay(ds, rec, renderer), out)
         assert renderer.render([1], rec.gt[0].TCO[None], rec.camera.K, (48, 64), depth_only=True).depth.shape == (1, 48, 64)

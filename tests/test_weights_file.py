@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from cosy_lite.model_files.checkpoint import (
+from cosy_lite.weights.checkpoint import (
     Checkpoint,
     CheckpointError,
     load_checkpoint,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 
@@ -16,17 +15,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default=None, help="split the file must be for (default: from the file name)")
 
 
-def resolve_dataset(path_or_name: str) -> Path:
-    """A folder as given, else ``$COSY_LITE_DATA/NAME`` (read now, default ``data``)."""
-    p = Path(path_or_name)
-    if p.is_dir() or len(p.parts) > 1:
-        return p
-    return Path(os.environ.get("COSY_LITE_DATA", "data")) / path_or_name
-
-
 def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.bop.validate import check_results, report
 
-    root = resolve_dataset(args.dataset) if args.dataset else None
+    root = dataset_folder(args.dataset) if args.dataset else None
     problems = check_results(args.file, root, args.name, args.split)
     return report(problems, str(args.file))

@@ -36,10 +36,6 @@ class DatasetParams:
     elev_range: tuple[float, float] | None = None  # radians
     symmetric_obj_ids: tuple[int, ...] = field(default=())  # evaluated with ADI (ADD-S)
 
-    @property
-    def train_splits(self) -> tuple[str, ...]:
-        return tuple(s for s in self.splits if s.startswith("train"))
-
 
 _PBR_JPG = SplitParams((640, 480), rgb_ext=".jpg")
 _VGA = SplitParams((640, 480))
@@ -149,11 +145,6 @@ def current_dataset_name(name: str, folder: object | None = None, warn: bool = T
 def dataset_name_of(root: str | Path, name: str | None = None, warn: bool = True) -> str:
     """The dataset name of folder ``root``: ``name`` if given, else the folder name (old names mapped to new ones)."""
     return current_dataset_name(name or Path(root).name, None if name else root, warn)
-
-
-def register_dataset(params: DatasetParams) -> None:
-    """Add (or replace) a row, e.g. for a synthetic dataset written by ``cosy_lite.synth``."""
-    DATASETS[params.name] = params
 
 
 def get_dataset_params(name: str) -> DatasetParams:

@@ -123,7 +123,7 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
 def run(args: argparse.Namespace) -> int:
     """Check the options, the results file and the dataset (every problem reported, nothing scored
     on bad input), then score and write ``scores.json`` + ``recall_curves.png``."""
-    from cosy_lite.bop.command_check_results import resolve_dataset
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report
@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {problem}", file=sys.stderr)
         return 2
     task = getattr(args, "task", "6d-localization")  # (namespaces built in code before the option existed)
-    root = resolve_dataset(args.dataset)
+    root = dataset_folder(args.dataset)
     if task.startswith("2d-"):
         return _run_2d(args, root, task)
     problems = check_results(args.results, root, args.name, args.split)

@@ -4,7 +4,7 @@ VSD only needs the depth of one object at a time, and only where the object is: 
 draws and reads back only a *window* of the image (the projected bounds of the object, see
 :func:`object_window`), with the full image's projection, so the pixels inside the window are
 exactly those of a full-image render (no principal-point shift, no resampling). The rendering is
-:meth:`cosy_lite.render.renderer.PyrenderRenderer.render_depth_window` (the project's one GL
+:meth:`cosy_lite.render.renderer.GlRenderer.render_depth_window` (the project's one GL
 stack, :mod:`cosy_lite.render.gl`); this module adds the toolkit's conventions: two-sided faces and
 clipping planes around the object's bounding box.
 
@@ -89,7 +89,7 @@ class WindowDepthRenderer:
     def __init__(self, meshes: dict[int, tuple[np.ndarray, np.ndarray]], width: int, height: int):
         import trimesh
 
-        from cosy_lite.render.renderer import PyrenderRenderer
+        from cosy_lite.render.renderer import GlRenderer
 
         self.width, self.height = int(width), int(height)
         models: dict[int, trimesh.Trimesh] = {}
@@ -103,7 +103,7 @@ class WindowDepthRenderer:
             lo, hi = v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64)
             self._corners[int(obj_id)] = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
         # Two-sided, as the toolkit: no back-face culling, whatever the mesh.
-        self._renderer = PyrenderRenderer(models, cull_back_faces=False)
+        self._renderer = GlRenderer(models, cull_back_faces=False)
 
     def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
         """Depth [h,w] float32 (m, 0 = background) of object ``obj_id`` at ``TCO`` [4,4] inside ``window``.

@@ -4,7 +4,7 @@ Ground truth as the BOP toolkit builds it for its BOP22 2D evaluation (``scripts
 one annotation per GT instance with at least one visible pixel, mask = ``mask_visib`` (RLE),
 ``ignore`` set when ``visib_fract < 0.1`` (pycocotools' ``COCOeval`` overwrites that flag with
 ``iscrowd``, so, as in the toolkit's evaluation, these instances count like the others). Boxes:
-``"modal"`` = ``bbox_visib`` (what :mod:`cosy_lite.models.detector` is trained to output) or
+``"modal"`` = ``bbox_visib`` (what :mod:`cosy_lite.nets.detector` is trained to output) or
 ``"amodal"`` = ``bbox_obj`` clipped to the image (the toolkit's BOP22 default uses the box of the
 full ``mask/``, which this matches up to the rounding of the projected box).
 """
@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import io as _io
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -52,9 +52,6 @@ class DetectionScores:
     n_images: int
     n_gt: int
     n_detections: int
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 def _gt_box(info: io.GtInfo, bbox_type: str, size: tuple[int, int]) -> list[float]:

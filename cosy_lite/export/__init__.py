@@ -1,2 +1,3 @@
-"""ONNX export of the three networks and their onnxruntime backend (:mod:`.onnx_export`,
-:mod:`.onnx_models`, :mod:`.quantize`, ``cosy-lite export``: :mod:`.command`)."""
+"""ONNX export of the three networks (:mod:`.onnx_export`, :mod:`.quantize`, the export's
+:mod:`.manifest`, ``cosy-lite export``: :mod:`.command`); the exported networks run through
+:mod:`cosy_lite.inference.onnx_runtime`."""

@@ -23,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.export.onnx_export import describe, export_models
-    from cosy_lite.model_files.reference_models import fill_networks, reference_models
+    from cosy_lite.weights.reference_models import fill_networks, reference_models
 
     inference = None
     if args.pretrained is not None:

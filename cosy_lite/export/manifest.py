@@ -88,7 +88,7 @@ class ModelEntry:
 def file_digest(path: Path) -> tuple[int, str]:
     """(size in bytes, sha256 hex) of ``path`` (the one file hash of the package, shared with the
     reference-model cards)."""
-    from cosy_lite.model_files.reference_models import file_sha256
+    from cosy_lite.weights.reference_models import file_sha256
 
     return path.stat().st_size, file_sha256(path)
 

@@ -1,6 +1,6 @@
 """Export the detector, coarse and refiner networks to ONNX with self-describing metadata.
 
-- Pose networks: :class:`~cosy_lite.models.pose_net.PoseNet` traced as it is, ``images
+- Pose networks: :class:`~cosy_lite.nets.pose_net.PoseNet` traced as it is, ``images
   [batch, 6, h, w]`` float32 in [0, 1] (crop, rendering) -> ``delta [batch, 9]``; dynamic batch,
   fixed crop size (the one it was trained at). After export the graph runs in onnxruntime on a
   random batch and its largest difference to torch is recorded (``check``).
@@ -42,7 +42,7 @@ from cosy_lite.export.manifest import (
 )
 
 if TYPE_CHECKING:
-    from cosy_lite.models.detector import Detector
+    from cosy_lite.nets.detector import Detector
 
 OPSET = 17  # >= 11 for Mask R-CNN (NMS, RoiAlign); 17 is what the legacy exporter knows well
 POSE_INPUT, POSE_OUTPUT = "images", "delta"
@@ -96,7 +96,7 @@ def export_pose_net(net: nn.Module, path: str | Path, kind: str, crop_resolution
 
 def export_detector(detector: Detector, path: str | Path, source: str = "", opset: int = OPSET,
                     seed: int = 0) -> ModelEntry:
-    """Write a :class:`~cosy_lite.models.detector.Detector` (its Mask R-CNN with pre/post-processing)
+    """Write a :class:`~cosy_lite.nets.detector.Detector` (its Mask R-CNN with pre/post-processing)
     to ``path``; returns its manifest entry. The label map and config go into the metadata."""
     path = Path(path)
     cfg = detector.config
@@ -172,8 +172,8 @@ def _run_once(path: Path, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
 
 
 def _pose_net_from_checkpoint(path: Path, kind: str) -> tuple[nn.Module, tuple[int, int], list[int], dict[str, Any]]:
-    from cosy_lite.model_files.checkpoint import load_checkpoint
-    from cosy_lite.model_files.loaders import load_pose_model
+    from cosy_lite.weights.checkpoint import load_checkpoint
+    from cosy_lite.weights.loaders import load_pose_model
 
     model = load_pose_model(path, kind)
     ckpt = load_checkpoint(path, kind=kind)
@@ -195,7 +195,7 @@ def export_models(out_dir: str | Path, detector: str | Path | None = None, coars
     weights-only) or of the wrong kind; every checkpoint is checked before a file is written.
     """
     from cosy_lite.export.quantize import QUANTIZERS
-    from cosy_lite.model_files.loaders import load_detector
+    from cosy_lite.weights.loaders import load_detector
 
     if detector is None and coarse is None and refiner is None:
         raise ValueError("nothing to export: give at least one of detector, coarse, refiner")

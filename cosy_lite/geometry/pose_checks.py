@@ -1,6 +1,6 @@
 """Which estimated poses are poses at all, and the nearest rotation of a drifting one.
 
-One policy for every render-and-compare loop (:func:`cosy_lite.models.render_and_compare.iterate_poses`)
+One policy for every render-and-compare loop (:func:`cosy_lite.nets.render_and_compare.iterate_poses`)
 and for the results the predictor writes: a pose is valid when it is finite, its rotation part is
 a rotation (orthonormal, det +1, within a tolerance) and the object is in front of the camera, at
 least :data:`MIN_DEPTH` away. An invalid pose is neither rendered again nor written.

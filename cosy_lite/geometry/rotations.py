@@ -35,11 +35,6 @@ def quaternion_to_matrix(q_wxyz: torch.Tensor) -> torch.Tensor:
     return kc.quaternion_to_rotation_matrix(F.normalize(q_wxyz, dim=-1))
 
 
-def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
-    """``[..., 3, 3]`` -> ``[..., 4]`` quaternion ``(w, x, y, z)``."""
-    return kc.rotation_matrix_to_quaternion(R.contiguous())
-
-
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """``[B, 3]`` rotation vectors (radians) -> ``[B, 3, 3]``."""
     return kc.axis_angle_to_rotation_matrix(axis_angle)

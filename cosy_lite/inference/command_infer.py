@@ -19,11 +19,14 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cosy_lite.inference.settings import add_arguments as add_setting_arguments
 from cosy_lite.inference.settings import flag_problem
 from cosy_lite.inference.starts import TEMPLATE_STARTS
+
+if TYPE_CHECKING:
+    from cosy_lite.inference.settings import InferenceConfig
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
@@ -65,14 +68,14 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 CHECKPOINT_ARGUMENTS = ("coarse", "refiner", "detector", "pretrained", "scorer")  # not with --onnx
-PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
+BACKEND_PRECISIONS = {"torch": ("fp32", "bf16"), "onnx": ("fp32", "int8")}
 
 
 def _backend(args: argparse.Namespace) -> str:
     return "torch" if args.onnx is None else "onnx"
 
 
-def _backend_problem(args: argparse.Namespace, config: Any) -> str | None:
+def _backend_problem(args: argparse.Namespace, config: InferenceConfig) -> str | None:
     """What is wrong with the combination of networks, settings and other arguments (None: nothing)."""
     backend = _backend(args)
     given = [f"--{k}" for k in CHECKPOINT_ARGUMENTS if getattr(args, k) is not None]
@@ -80,8 +83,8 @@ def _backend_problem(args: argparse.Namespace, config: Any) -> str | None:
         return f"{' '.join(given)} not used with --onnx (the export's networks)"
     if args.also_before_icp is not None and not config.icp:
         return "--also-before-icp needs --icp"
-    if config.precision not in PRECISIONS[backend]:
-        return f"precision {config.precision} needs another backend ({backend}: {list(PRECISIONS[backend])})"
+    if config.precision not in BACKEND_PRECISIONS[backend]:
+        return f"precision {config.precision} needs another backend ({backend}: {list(BACKEND_PRECISIONS[backend])})"
     if backend == "onnx":
         return None
     if args.coarse is None and not (config.start in TEMPLATE_STARTS and args.refiner is not None):
@@ -117,12 +120,12 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.bop.results import results_filename
+    from cosy_lite.devices import resolve_device
     from cosy_lite.inference.bop_run import run_on_split
-    from cosy_lite.inference.network_runtime import default_device
     from cosy_lite.inference.predictor import Predictor, SetupError
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.synth.command import dataset_folder
 
     use_egl()
     if problem := flag_problem(args) or _argument_problem(args):
@@ -155,11 +158,11 @@ def run(args: argparse.Namespace) -> int:
         if args.detections is None and predictor.detector is None:
             raise SetupError(f"{args.onnx / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
-        detector_path = predictor.detector.path if predictor.detector is not None else None
+        detector_path = getattr(predictor.detector, "path", None)  # the export's detector.onnx
     else:
         predictor = Predictor.from_checkpoints(
             detector=args.detector if args.detections is None else None, coarse=args.coarse,
-            refiner=args.refiner, dataset=dataset, config=config, device=default_device(args.device),
+            refiner=args.refiner, dataset=dataset, config=config, device=resolve_device(args.device),
             templates_cache=args.templates_cache, scorer=args.scorer)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,

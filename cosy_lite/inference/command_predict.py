@@ -23,13 +23,18 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cosy_lite.inference.settings import add_arguments as add_setting_arguments
 from cosy_lite.inference.settings import flag_problem
 from cosy_lite.inference.starts import TEMPLATE_STARTS
+
+if TYPE_CHECKING:
+    from cosy_lite.inference.pose_estimates import PoseEstimates
+    from cosy_lite.inference.predictor import Predictor
+    from cosy_lite.inference.settings import InferenceConfig
 
 
 def obj_id_list(text: str) -> list[int]:
@@ -80,7 +85,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 class ImagePrediction:
     """What :func:`predict_image` returns: the estimates (metres) and the overlay."""
 
-    estimates: Any  # cosy_lite.inference.predictor.PoseEstimates (valid ones only)
+    estimates: PoseEstimates  # (valid ones only)
     n_invalid: int  # poses dropped as invalid (NaN, not a rotation, behind the camera)
     overlay: np.ndarray  # [H,W,3] uint8
     seconds: float  # wall time of predict()
@@ -89,18 +94,18 @@ class ImagePrediction:
 def models_folder(name_or_dir: str) -> Path:
     """The BOP ``models/`` folder of ``--meshes``: the folder itself if it has ``models_info.json``,
     else its ``models/``, else ``$COSY_LITE_DATA/NAME/models``. Errors name what was looked for."""
-    from cosy_lite.bop.command_check_results import resolve_dataset
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.errors import BopFormatError
 
     p = Path(name_or_dir)
     if (p / "manifest.json").is_file():
         raise BopFormatError(p, "--meshes", "this is a 'cosy-lite export' folder: pass it as --onnx; --meshes are the "
                              "objects' 3D models (a BOP models/ folder, a dataset folder or a dataset name)")
-    for cand in (p, p / "models", resolve_dataset(name_or_dir) / "models"):
+    for cand in (p, p / "models", dataset_folder(name_or_dir) / "models"):
         if (cand / "models_info.json").is_file():
             return cand
     raise BopFormatError(p, "--meshes", "no models_info.json in it, in its models/ or in "
-                         f"{resolve_dataset(name_or_dir) / 'models'} (expected a BOP models/ folder, a dataset "
+                         f"{dataset_folder(name_or_dir) / 'models'} (expected a BOP models/ folder, a dataset "
                          "folder or a dataset name under $COSY_LITE_DATA)")
 
 
@@ -117,7 +122,7 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
     return None
 
 
-def _setup_problem(args: argparse.Namespace, config: Any) -> str | None:
+def _setup_problem(args: argparse.Namespace, config: InferenceConfig) -> str | None:
     """What the networks and settings of the command line lack (None: nothing)."""
     if args.onnx is None and args.coarse is None and not (config.start in TEMPLATE_STARTS and args.refiner is not None):
         return ("give --coarse CKPT [--refiner CKPT --detector CKPT] (torch), --start templates --refiner CKPT, "
@@ -197,8 +202,8 @@ def _load_inputs(args: argparse.Namespace):
     return rgb, cam.K, depth
 
 
-def _build_predictor(args: argparse.Namespace, config: Any, models_dir: Path):
-    from cosy_lite.inference.network_runtime import default_device
+def _build_predictor(args: argparse.Namespace, config: InferenceConfig, models_dir: Path) -> Predictor:
+    from cosy_lite.devices import resolve_device
     from cosy_lite.inference.predictor import Predictor, SetupError
 
     common = dict(models_dir=models_dir, config=config, obj_ids=args.objects, templates_cache=args.templates_cache)
@@ -209,7 +214,7 @@ def _build_predictor(args: argparse.Namespace, config: Any, models_dir: Path):
                              "(cosy-lite export --detector CKPT) or give --detections FILE.json")
         return p
     return Predictor.from_checkpoints(detector=args.detector if args.detections is None else None, coarse=args.coarse,
-                                      refiner=args.refiner, device=default_device(args.device), scorer=args.scorer,
+                                      refiner=args.refiner, device=resolve_device(args.device), scorer=args.scorer,
                                       **common)
 
 

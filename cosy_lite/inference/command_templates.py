@@ -3,7 +3,7 @@
     cosy-lite templates --dataset ycbvsynth --cache runs/demo/templates [--objects 1,3,5] [--start appearance]
 
 ``--start appearance`` also describes the templates' textured renderings for the appearance start
-(:mod:`cosy_lite.models.appearance_templates`), rendered with ``--shading`` (the pose networks':
+(:mod:`cosy_lite.nets.appearance_templates`), rendered with ``--shading`` (the pose networks':
 ``headlight`` for every shipped refiner).
 
 ``infer.py --start templates --templates-cache DIR`` renders each object's templates on its first
@@ -41,9 +41,9 @@ def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = 
     """Render (or find) the templates of ``obj_ids`` (default: all) of the BOP ``models_dir`` in
     ``cache`` (``start="appearance"``: their appearance descriptors too, rendered with ``shading``);
     seconds per object. Raises SetupError for an object without a model."""
-    from cosy_lite.inference.object_models import ObjectModels, SetupError, objects_and_renderer, start_templates
+    from cosy_lite.inference.object_meshes import ObjectMeshes, SetupError, objects_and_renderer, start_templates
 
-    models = ObjectModels(models_dir)
+    models = ObjectMeshes(models_dir)
     ids = sorted(obj_ids) if obj_ids else models.obj_ids
     unknown = sorted(set(ids) - set(models.obj_ids))
     if unknown:
@@ -65,8 +65,8 @@ def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = 
 
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.synth.command import dataset_folder
 
     use_egl()
     dataset = BopDataset(dataset_folder(args.dataset, args.data_root))

@@ -8,7 +8,7 @@ detection, keeps the one whose depth agrees best with the measurement.
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -17,6 +17,9 @@ from torch import Tensor
 from cosy_lite.bop.detections import Detections
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.icp import IcpConfig, IcpResult, refine_poses_icp
+
+if TYPE_CHECKING:
+    from cosy_lite.render.renderer import MeshRenderer
 
 
 def box_masks(boxes: Tensor, size: tuple[int, int]) -> np.ndarray:
@@ -34,7 +37,7 @@ class DepthRefinement:
     """ICP of a predictor's poses: ``renderer`` of the objects, ``config``, ``symmetries`` obj_id ->
     ``[S,4,4]`` symmetry set (m; None: no symmetry handling)."""
 
-    def __init__(self, renderer: Any, config: IcpConfig, symmetries: dict[int, np.ndarray] | None = None):
+    def __init__(self, renderer: MeshRenderer, config: IcpConfig, symmetries: dict[int, np.ndarray] | None = None):
         self.renderer, self.config, self.symmetries = renderer, config, symmetries
         self._warned = False
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
@@ -43,16 +43,7 @@ if TYPE_CHECKING:
     import open3d as o3d
     import trimesh
 
-    from cosy_lite.render.renderer import RenderOutput
-
-
-class MeshRenderer(Protocol):
-    """What ICP needs from a renderer (:class:`cosy_lite.render.renderer.PyrenderRenderer` has it)."""
-
-    def render(self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: tuple[int, int],
-               depth_only: bool = False) -> RenderOutput: ...
-
-    def mesh(self, obj_id: int) -> trimesh.Trimesh: ...
+    from cosy_lite.render.renderer import MeshRenderer
 
 
 @dataclass

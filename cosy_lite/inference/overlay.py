@@ -3,16 +3,19 @@ the image (object colours, labelled ``obj_id score``), and the ground truth as t
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from cosy_lite.vis.overlay import draw_contour, draw_label, object_colour
 
+if TYPE_CHECKING:
+    from cosy_lite.render.renderer import Renderer
+
 GT_COLOUR = (255, 255, 255)
 
 
-def _silhouettes(renderer: Any, obj_ids: Sequence[int], TCO: np.ndarray, K: np.ndarray,
+def _silhouettes(renderer: Renderer, obj_ids: Sequence[int], TCO: np.ndarray, K: np.ndarray,
                  size: tuple[int, int]) -> np.ndarray:
     if len(obj_ids) == 0:
         return np.zeros((0, *size), dtype=bool)
@@ -20,7 +23,7 @@ def _silhouettes(renderer: Any, obj_ids: Sequence[int], TCO: np.ndarray, K: np.n
 
 
 def draw_estimates(rgb: np.ndarray, K: np.ndarray, obj_ids: Sequence[int], TCO: np.ndarray, scores: Sequence[float],
-                   renderer: Any, gt_obj_ids: Sequence[int] = (), gt_TCO: np.ndarray | None = None) -> np.ndarray:
+                   renderer: Renderer, gt_obj_ids: Sequence[int] = (), gt_TCO: np.ndarray | None = None) -> np.ndarray:
     """``rgb [H,W,3]`` uint8 with the estimated poses ``TCO [N,4,4]`` (m) of ``obj_ids [N]`` as
     contours in object colours and, when given, the GT poses ``gt_TCO [G,4,4]`` as white contours.
 

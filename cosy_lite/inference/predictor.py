@@ -1,17 +1,17 @@
 """The pose-estimation pipeline for one RGB(-D) image: detector -> coarse -> refiner -> depth ICP.
 
 Per image: the image is converted to a tensor once; every detected object goes through the
-networks together (one batch per iteration, see :func:`~cosy_lite.models.render_and_compare.iterate_poses`,
+networks together (one batch per iteration, see :func:`~cosy_lite.nets.render_and_compare.iterate_poses`,
 all crops of an iteration rendered in one call). Starting pose (``start``):
 
 * ``"coarse"`` (CosyPose): canonical rotation and depth from the detection box
-  (:func:`~cosy_lite.models.initial_pose.initial_pose_from_boxes`) -> 1 coarse iteration;
+  (:func:`~cosy_lite.nets.initial_pose.initial_pose_from_boxes`) -> 1 coarse iteration;
 * ``"templates"``: the detection mask matched against rendered silhouettes
-  (:class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates`, no network);
+  (:class:`~cosy_lite.nets.silhouette_templates.SilhouetteTemplates`, no network);
   ``"appearance"``: the same templates ranked by the image inside the mask against textured
-  renderings as well (:class:`~cosy_lite.models.appearance_templates.AppearanceTemplates`); with
+  renderings as well (:class:`~cosy_lite.nets.appearance_templates.AppearanceTemplates`); with
   ``n_candidates`` > 1 the best templates each get one refiner iteration and the one the flow
-  refiner is most confident about (:func:`~cosy_lite.models.render_and_compare.refine_and_score`)
+  refiner is most confident about (:func:`~cosy_lite.nets.render_and_compare.refine_and_score`)
   goes on (that iteration counts as the first of ``n_refiner_iterations``);
 
 -> ``n_refiner_iterations`` refiner iterations (CosyPose: 1 + 4) -> optionally point-to-plane ICP
@@ -31,7 +31,7 @@ import dataclasses
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence, TypeAlias
 
 import numpy as np
 import torch
@@ -41,21 +41,30 @@ from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_box
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
 from cosy_lite.inference.detection_filter import DetectionFilter
-from cosy_lite.inference.network_runtime import PRECISIONS as NETWORK_PRECISIONS
-from cosy_lite.inference.network_runtime import Clock, TimedRenderer, flush_denormals, inference_net, timed_net
-from cosy_lite.inference.object_models import SetupError, object_models, objects_and_renderer, render_shading, start_templates
+from cosy_lite.inference.object_meshes import SetupError, object_meshes, objects_and_renderer, render_shading, start_templates
 from cosy_lite.inference.pose_estimates import TIMING_KEYS, PoseEstimates
 from cosy_lite.inference.settings import InferenceConfig, inference_config, with_refiner
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
-from cosy_lite.model_files.loaders import PoseModel, load_detector, load_pose_model
-from cosy_lite.models.appearance_templates import AppearanceTemplates
+from cosy_lite.inference.torch_runtime import AUTOCAST_DTYPES, Clock, TimedRenderer, flush_denormals, inference_net, timed_net
+from cosy_lite.nets.appearance_templates import AppearanceTemplates
 
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
 # has rendered crashes the process.
-from cosy_lite.models.detector import detect
-from cosy_lite.models.initial_pose import initial_pose_from_boxes
-from cosy_lite.models.render_and_compare import iterate_poses, refine_and_score
-from cosy_lite.models.silhouette_templates import SilhouetteTemplates
+from cosy_lite.nets.detector import detect
+from cosy_lite.nets.initial_pose import initial_pose_from_boxes
+from cosy_lite.nets.render_and_compare import iterate_poses, refine_and_score
+from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
+from cosy_lite.weights.loaders import PoseModel, load_detector, load_pose_model
+
+if TYPE_CHECKING:
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.inference.onnx_runtime import OnnxDetector
+    from cosy_lite.nets.detector import Detector
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.render.renderer import MeshRenderer, Renderer
+
+# what the factories take as ``dataset``: a dataset or its folder (its ``models/`` is read)
+DatasetSource: TypeAlias = "BopDataset | str | Path | None"
 
 __all__ = ["Predictor", "PoseEstimates", "SetupError", "STARTS", "TIMING_KEYS"]
 
@@ -75,9 +84,9 @@ def _as_K(K: Any) -> Tensor:
     return K
 
 
-def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer: Any) -> nn.Module:
+def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer: MeshRenderer) -> nn.Module:
     """The coarse scorer network of ``path``, checked against the pipeline it joins."""
-    from cosy_lite.model_files.loaders import load_scorer
+    from cosy_lite.weights.loaders import load_scorer
 
     if start != "appearance":
         raise SetupError(f"{path}: a coarse scorer ranks the templates of start='appearance', not start={start!r}")
@@ -95,26 +104,26 @@ class Predictor:
     """Detector -> coarse -> refiner -> optional depth ICP, for single images.
 
     Args:
-        coarse, refiner: the pose networks (:class:`~cosy_lite.model_files.loaders.PoseModel`; torch
+        coarse, refiner: the pose networks (:class:`~cosy_lite.weights.loaders.PoseModel`; torch
             modules, or onnxruntime sessions from :meth:`from_onnx`); refiner None: coarse only;
             coarse None: only with a template start (the coarse network is not used there).
-        objects: :class:`~cosy_lite.models.object_table.ObjectTable` of the objects to estimate
+        objects: :class:`~cosy_lite.nets.object_table.ObjectTable` of the objects to estimate
             (model points for the crops, diameters for the starting depth).
-        renderer: batched renderer of the same objects (:class:`~cosy_lite.render.renderer.PyrenderRenderer`).
-        detector: :class:`~cosy_lite.models.detector.Detector`, an
-            :class:`~cosy_lite.export.onnx_models.OnnxDetector`, or None (detections then have to be given).
+        renderer: batched renderer of the same objects (:class:`~cosy_lite.render.renderer.GlRenderer`).
+        detector: :class:`~cosy_lite.nets.detector.Detector`, an
+            :class:`~cosy_lite.inference.onnx_runtime.OnnxDetector`, or None (detections then have to be given).
         config: how the pipeline runs (:class:`~cosy_lite.inference.settings.InferenceConfig`: start,
             candidates, refiner iterations, detection filter, ICP, precision, batch size ...; None: its
             defaults). ``channels_last`` and ``fuse_bn`` act on copies of the torch networks
             (:func:`inference_net`); the given modules are not changed.
         icp_symmetries: obj_id -> symmetry set [S,4,4] (m) for ICP (None: no symmetry handling).
         device: where the networks run.
-        templates: the :class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates` to match
+        templates: the :class:`~cosy_lite.nets.silhouette_templates.SilhouetteTemplates` to match
             (None: 2,048 per object, rendered with ``renderer`` on first use of each object).
     """
 
-    def __init__(self, coarse: PoseModel | None, refiner: PoseModel | None, objects: Any, renderer: Any,
-                 detector: Any = None, config: InferenceConfig | None = None,
+    def __init__(self, coarse: PoseModel | None, refiner: PoseModel | None, objects: ObjectTable, renderer: MeshRenderer,
+                 detector: Detector | OnnxDetector | None = None, config: InferenceConfig | None = None,
                  icp_symmetries: dict[int, np.ndarray] | None = None, device: str | torch.device = "cpu",
                  templates: SilhouetteTemplates | None = None):
         config = config or InferenceConfig()
@@ -125,8 +134,8 @@ class Predictor:
                              "confidence ranks the candidates")
         if refiner is None and config.n_refiner_iterations > 0:
             raise ValueError(f"n_refiner_iterations = {config.n_refiner_iterations} but no refiner model given")
-        if config.precision not in NETWORK_PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(NETWORK_PRECISIONS)} here, got {config.precision!r}")
+        if config.precision not in AUTOCAST_DTYPES:
+            raise ValueError(f"precision must be one of {sorted(AUTOCAST_DTYPES)} here, got {config.precision!r}")
         self.config = config
         self.device = torch.device(device)
         self.coarse, self.refiner, self.detector = coarse, refiner, detector
@@ -168,7 +177,7 @@ class Predictor:
     @classmethod
     def from_checkpoints(
         cls, detector: str | Path | None = None, coarse: str | Path | None = None,
-        refiner: str | Path | None = None, models_dir: str | Path | None = None, dataset: Any = None,
+        refiner: str | Path | None = None, models_dir: str | Path | None = None, dataset: DatasetSource = None,
         config: InferenceConfig | None = None, device: str | torch.device = "cpu",
         obj_ids: Sequence[int] | None = None, n_points: int | None = None,
         templates_cache: str | Path | None = None, scorer: str | Path | None = None,
@@ -193,35 +202,35 @@ class Predictor:
         config = with_refiner(config or InferenceConfig(), refiner is not None)
         if coarse is None and (config.start not in TEMPLATE_STARTS or refiner is None):
             raise SetupError("a coarse checkpoint is needed (coarse=...), or start='templates' with a refiner")
-        models = object_models(models_dir, dataset)
+        meshes = object_meshes(models_dir, dataset)
         coarse_model = None if coarse is None else load_pose_model(coarse, "coarse", device)
         refiner_model = None if refiner is None else load_pose_model(refiner, "refiner", device)
         first = coarse_model or refiner_model
         ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
-        unknown = sorted(set(ids) - set(models.obj_ids))
+        unknown = sorted(set(ids) - set(meshes.obj_ids))
         if unknown:
-            raise SetupError(f"{models.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
-        objects, renderer, syms = objects_and_renderer(models, ids, n_points, config.icp,
+            raise SetupError(f"{meshes.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
+        objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
         scorer_net = None if scorer is None else _load_scorer(scorer, config.start, ids, renderer)
-        templates = start_templates(config.start, models, objects, renderer, templates_cache, scorer_net)
+        templates = start_templates(config.start, meshes, objects, renderer, templates_cache, scorer_net)
         return cls(coarse_model, refiner_model, objects, renderer, det, config, syms, device, templates)
 
     @classmethod
     def from_pretrained(
-        cls, name: str, models_dir: str | Path | None = None, dataset: Any = None, detector: bool = True,
+        cls, name: str, models_dir: str | Path | None = None, dataset: DatasetSource = None, detector: bool = True,
         config: InferenceConfig | None = None, device: str | torch.device = "cpu",
         obj_ids: Sequence[int] | None = None, templates_cache: str | Path | None = None,
     ) -> "Predictor":
-        """The shipped reference models ``name`` (:mod:`cosy_lite.model_files.reference_models`, e.g.
+        """The shipped reference models ``name`` (:mod:`cosy_lite.weights.reference_models`, e.g.
         ``"ycbvsynth"``) run as the set's ``pipeline.json`` says (``config`` None; to change some of
         its settings: ``inference_config(reference_models(name).inference, overrides=["icp=true"])``).
 
         detector: use the set's detector (False: detections are passed to :meth:`predict`); the
         other arguments as :meth:`from_checkpoints`. Raises ReferenceModelError for an unknown name.
         """
-        from cosy_lite.model_files.reference_models import reference_models
+        from cosy_lite.weights.reference_models import reference_models
 
         ref = reference_models(name)
         config = config or inference_config(ref.inference, ref.pipeline_path)
@@ -233,14 +242,14 @@ class Predictor:
 
     @classmethod
     def from_onnx(
-        cls, export_dir: str | Path, models_dir: str | Path | None = None, dataset: Any = None,
+        cls, export_dir: str | Path, models_dir: str | Path | None = None, dataset: DatasetSource = None,
         config: InferenceConfig | None = None, obj_ids: Sequence[int] | None = None, n_points: int | None = None,
         threads: int | None = None, detector: bool = True, spinning: bool = False,
         templates_cache: str | Path | None = None,
     ) -> "Predictor":
         """The pipeline with the exported networks of ``export_dir`` (``cosy-lite export --out``)
         in onnxruntime on the CPU; crops, rendering, pose updates and ICP as :meth:`from_checkpoints`
-        (the same loop, :func:`~cosy_lite.models.render_and_compare.iterate_poses`).
+        (the same loop, :func:`~cosy_lite.nets.render_and_compare.iterate_poses`).
 
         Args:
             export_dir: folder with ``manifest.json``, ``coarse.onnx`` [, ``refiner.onnx``,
@@ -257,11 +266,11 @@ class Predictor:
                 a shared one).
             templates_cache: as :meth:`from_checkpoints`.
         Raises OnnxModelError naming the file and field (missing / truncated / mismatched files,
-        see :func:`~cosy_lite.export.onnx_models.load_onnx_models`), SetupError when the exported
+        see :func:`~cosy_lite.inference.onnx_runtime.load_onnx_models`), SetupError when the exported
         models or the object models do not cover the objects.
         """
         from cosy_lite.export.manifest import Manifest, OnnxModelError
-        from cosy_lite.export.onnx_models import load_onnx_models
+        from cosy_lite.inference.onnx_runtime import load_onnx_models
 
         manifest = Manifest.read(export_dir)
         config = config or inference_config(manifest.inference, manifest.path)
@@ -269,7 +278,7 @@ class Predictor:
         if precision not in ("fp32", "int8"):
             raise SetupError(f"precision {precision!r}: the ONNX networks run in fp32 or int8")
         onnx = load_onnx_models(export_dir, threads, precision, detector, spinning)
-        models = object_models(models_dir, dataset)
+        meshes = object_meshes(models_dir, dataset)
         role = "coarse" if onnx.coarse is not None else "refiner"
         if onnx.coarse is None and config.start == "coarse":
             raise OnnxModelError(onnx.manifest.path, "models.coarse", "missing: the export has no coarse model "
@@ -277,21 +286,21 @@ class Predictor:
         first_name = role + ("" if precision == "fp32" else f".{precision}")
         first = onnx.coarse if onnx.coarse is not None else onnx.refiner
         ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
-        unknown = sorted(set(ids) - set(models.obj_ids))
+        unknown = sorted(set(ids) - set(meshes.obj_ids))
         if unknown:
             field_ = "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids"
             raise OnnxModelError(onnx.manifest.path, field_, f"obj_ids {unknown} have no model in "
-                                 f"{models.models_dir / 'models_info.json'} (it has {models.obj_ids})")
+                                 f"{meshes.models_dir / 'models_info.json'} (it has {meshes.obj_ids})")
         config = dataclasses.replace(with_refiner(config, onnx.refiner is not None), precision="fp32")
-        objects, renderer, syms = objects_and_renderer(models, ids, n_points, config.icp,
+        objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(onnx.coarse, onnx.refiner))
-        templates = start_templates(config.start, models, objects, renderer, templates_cache)
+        templates = start_templates(config.start, meshes, objects, renderer, templates_cache)
         return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, config, syms, "cpu", templates)
 
     @property
     def backend(self) -> str:
         """"onnx" when the pose networks are onnxruntime sessions, else "torch" (one loop for both:
-        :func:`~cosy_lite.models.render_and_compare.iterate_poses`)."""
+        :func:`~cosy_lite.nets.render_and_compare.iterate_poses`)."""
         return "torch" if all(isinstance(n, nn.Module) for n in self._nets.values()) else "onnx"
 
     @property
@@ -454,7 +463,7 @@ class Predictor:
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
 
     def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
-                          renderer: Any, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                          renderer: Renderer, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(chosen candidate [N,4,4], it after one refiner iteration [N,4,4], every candidate after one
         iteration [N,k,4,4], the choice [N]) of ``candidates [N,k,4,4]``: the one with the highest
         flow confidence (invalid candidates are not run)."""

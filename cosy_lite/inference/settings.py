@@ -151,7 +151,7 @@ def pretrained_config(args: Any, use_networks: bool = True) -> InferenceConfig:
     from the appearance templates (``use_networks`` False: the set is not used, for a backend that
     does not take its networks). Raises ReferenceModelError for an unknown name, ConfigError naming
     ``pipeline.json`` or the flag and the field for a bad setting."""
-    from cosy_lite.model_files.reference_models import KINDS, fill_networks, reference_models
+    from cosy_lite.weights.reference_models import KINDS, fill_networks, reference_models
 
     if getattr(args, "pretrained", None) is None or not use_networks:
         return config_from_arguments(args)

@@ -38,12 +38,12 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.errors import CosyLiteError
-    from cosy_lite.model_files.loaders import load_pose_model
-    from cosy_lite.models.initial_pose import add_pose_noise
-    from cosy_lite.models.object_table import ObjectTable
-    from cosy_lite.models.render_and_compare import iterate_poses
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.nets.initial_pose import add_pose_noise
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.nets.render_and_compare import iterate_poses
+    from cosy_lite.render.renderer import GlRenderer
     from cosy_lite.train.pose_task import PoseErrors, pose_errors
+    from cosy_lite.weights.loaders import load_pose_model
 
     ds = BopDataset(Path(dataset_root))
     model = load_pose_model(refiner, "refiner")
@@ -56,7 +56,7 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
     g = torch.Generator().manual_seed(seed)
     rows = torch.randperm(len(items), generator=g)[:n].tolist()
     objects = ObjectTable.from_dataset(ds, obj_ids)
-    renderer = PyrenderRenderer.from_dataset(ds, shading=model.render_shading)
+    renderer = GlRenderer.from_dataset(ds, shading=model.render_shading)
     keys = ["start"] + [f"iter{i + 1}" for i in range(n_iterations)]
     errors: dict[str, list[PoseErrors]] = {k: [] for k in keys}
     diameters = []
@@ -101,10 +101,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.errors import CosyLiteError
-    from cosy_lite.model_files.reference_models import ReferenceModelError, reference_models
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.synth.command import dataset_folder
+    from cosy_lite.weights.reference_models import ReferenceModelError, reference_models
 
     use_egl()
     refiner = Path(args.refiner)

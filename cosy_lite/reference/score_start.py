@@ -36,10 +36,10 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.errors import CosyLiteError
-    from cosy_lite.inference.object_models import ObjectModels, objects_and_renderer, start_templates
-    from cosy_lite.model_files.loaders import load_pose_model, load_scorer
-    from cosy_lite.models.appearance_templates import textured_obj_ids
-    from cosy_lite.models.render_and_compare import refine_and_score
+    from cosy_lite.inference.object_meshes import ObjectMeshes, objects_and_renderer, start_templates
+    from cosy_lite.nets.appearance_templates import textured_obj_ids
+    from cosy_lite.nets.render_and_compare import refine_and_score
+    from cosy_lite.weights.loaders import load_pose_model, load_scorer
 
     if n_candidates > 1 and refiner is None:
         raise CosyLiteError("--candidates > 1 chooses among the candidates with a refiner's confidence: give --refiner")
@@ -49,7 +49,7 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
         raise CosyLiteError(f"{dataset_root}: no instance with a visible fraction >= {min_visib} in split {split!r}")
     order = np.random.default_rng(seed).permutation(len(items))[:n] if n else np.arange(len(items))
     model = None if refiner is None else load_pose_model(refiner, "refiner")
-    models = ObjectModels(ds.models_dir)
+    models = ObjectMeshes(ds.models_dir)
     obj_ids = sorted(ds.models_info)
     objects, renderer, _ = objects_and_renderer(models, obj_ids, None, icp=False,
                                                 shading=model.render_shading if model else "headlight")
@@ -126,10 +126,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.errors import CosyLiteError
-    from cosy_lite.model_files.reference_models import reference_models, reference_names
     from cosy_lite.render.gl import use_egl
-    from cosy_lite.synth.command import dataset_folder
+    from cosy_lite.weights.reference_models import reference_models, reference_names
 
     use_egl()
     refiner = args.refiner

@@ -1,6 +1,6 @@
 """The one OpenGL stack of the process: EGL contexts and the OpenCV -> OpenGL projection.
 
-Every renderer (render-and-compare, ICP and templates: :class:`~cosy_lite.render.renderer.PyrenderRenderer`;
+Every renderer (render-and-compare, ICP and templates: :class:`~cosy_lite.render.renderer.GlRenderer`;
 the evaluator's windowed depth: :mod:`cosy_lite.eval.depth_renderer`; pictures; the synthetic
 generator's lit scenes: :mod:`cosy_lite.render.pyrender_scene`) renders in an :class:`EglContext`
 of its own, made current only while it renders and destroyed without terminating the EGL display,

@@ -1,7 +1,7 @@
 """pyrender's own scene renderer (PBR materials, lights, many meshes) on the project's GL stack.
 
 Used for the synthetic generator's lit scenes (:mod:`cosy_lite.synth.scene_render`), which need
-pyrender's lighting; single objects on black are :class:`~cosy_lite.render.renderer.PyrenderRenderer`'s.
+pyrender's lighting; single objects on black are :class:`~cosy_lite.render.renderer.GlRenderer`'s.
 :class:`OffscreenSceneRenderer` renders exactly what ``pyrender.OffscreenRenderer`` renders (the same
 ``pyrender.Renderer``), but in an :class:`~cosy_lite.render.gl.EglContext`: closing it destroys
 its own context only, where ``OffscreenRenderer.delete`` terminates the EGL display and with it

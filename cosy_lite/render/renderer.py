@@ -1,6 +1,6 @@
 """Batched renderer of objects alone on black: RGB, depth and mask of B crops (or full images) in
 one call; and the depth of one object inside a window of an image, for the evaluator's VSD
-(:meth:`PyrenderRenderer.render_depth_window`). Used by render-and-compare, ICP, the silhouette
+(:meth:`GlRenderer.render_depth_window`). Used by render-and-compare, ICP, the silhouette
 templates, the evaluator and the pictures; its context is :mod:`.gl`'s.
 
 Conventions: ``TCO`` object-to-camera (m), OpenCV camera, ``K`` in pixels, ``resolution=(H, W)``.
@@ -60,7 +60,7 @@ class RenderOutput:
     depth: np.ndarray
     mask: np.ndarray
 
-    def to_tensors(self, device: Any = "cpu") -> tuple[torch.Tensor | None, torch.Tensor]:
+    def to_tensors(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor | None, torch.Tensor]:
         """rgb float32 [B,3,H,W] in [0, 1] (None if depth-only) and depth float32 [B,1,H,W] (m) on ``device``."""
         import torch
 
@@ -72,7 +72,7 @@ class RenderOutput:
 
 
 class Renderer(Protocol):
-    """What training, inference and evaluation call; :class:`PyrenderRenderer` is the backend."""
+    """What training, inference and evaluation call; :class:`GlRenderer` is the backend."""
 
     def render(
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution, depth_only: bool = False
@@ -82,9 +82,17 @@ class Renderer(Protocol):
 
     def render_tensors(
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution,
-        device: Any = "cpu", depth_only: bool = False,
+        device: torch.device | str = "cpu", depth_only: bool = False,
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """As :meth:`render`, as torch tensors: rgb [B,3,H,W] in [0, 1], depth [B,1,H,W] (m)."""
+        ...
+
+
+class MeshRenderer(Renderer, Protocol):
+    """A renderer that also hands out its meshes (ICP's model clouds, textured-object checks)."""
+
+    def mesh(self, obj_id: int) -> trimesh.Trimesh:
+        """The mesh of ``obj_id`` (m)."""
         ...
 
 
@@ -264,7 +272,7 @@ class _GpuMesh:
     n_indices: int
     texture: int | None  # GL texture name, None for vertex colours
     buffers: list[int]
-    cull: bool | None = None  # draw front faces only (see PyrenderRenderer.cull_back_faces)
+    cull: bool | None = None  # draw front faces only (see GlRenderer.cull_back_faces)
 
 
 @dataclass
@@ -389,7 +397,7 @@ def _create_framebuffer(width: int, height: int) -> _Framebuffer:
 # ----------------------------------------------------------------------------- the backend
 
 
-class PyrenderRenderer:
+class GlRenderer:
     """The :class:`Renderer` backend: an :class:`~cosy_lite.render.gl.EglContext` (Mesa llvmpipe on
     CPU, NVIDIA EGL on a GPU) and a lean OpenGL pass of its own (see the module docstring for the
     conventions); :meth:`render_depth_window` is the evaluator's windowed depth.
@@ -430,7 +438,7 @@ class PyrenderRenderer:
         shading: str = "flat",
     ):
         if meshes is None and models_dir is None:
-            raise ValueError("PyrenderRenderer needs meshes or a models_dir")
+            raise ValueError("GlRenderer needs meshes or a models_dir")
         if shading not in SHADINGS:
             raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
         self.shading = shading
@@ -446,7 +454,7 @@ class PyrenderRenderer:
         self._lock = threading.Lock()
 
     @classmethod
-    def from_dataset(cls, dataset: BopDataset, eval_models: bool = False, **kwargs: Any) -> PyrenderRenderer:
+    def from_dataset(cls, dataset: BopDataset, eval_models: bool = False, **kwargs: Any) -> GlRenderer:
         """Renderer of a BOP dataset's ``models/`` (``eval_models``: ``models_eval/``, geometry only)."""
         return cls(models_dir=dataset.models_eval_dir if eval_models else dataset.models_dir, **kwargs)
 
@@ -550,7 +558,7 @@ class PyrenderRenderer:
 
     def render_tensors(
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution,
-        device: Any = "cpu", depth_only: bool = False,
+        device: torch.device | str = "cpu", depth_only: bool = False,
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
         """:meth:`render` as tensors on ``device``: rgb float [B,3,H,W] in [0, 1] (None if
         depth_only), depth [B,1,H,W] (m)."""
@@ -630,7 +638,7 @@ class PyrenderRenderer:
                 self._gl.context.destroy()
                 self._gl = None
 
-    def __enter__(self) -> PyrenderRenderer:
+    def __enter__(self) -> GlRenderer:
         return self
 
     def __exit__(self, *exc: Any) -> None:

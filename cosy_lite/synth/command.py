@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -20,35 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. train.n_images=200 seed=3")
 
 
-def default_data_root() -> Path:
-    return Path(os.environ.get("COSY_LITE_DATA", "data"))
-
-
-def dataset_folder(dataset: str, data_root: Path | None = None) -> Path:
-    """The folder of a ``--dataset`` value: a folder as given, else ``DATA_ROOT/NAME``.
-
-    An old name of :data:`~cosy_lite.bop.params.RENAMED_DATASETS` (e.g. ``ycbv-synth``) gives its new
-    name's folder when that exists; else its old folder when that exists (read under the new name,
-    with a warning to rename it); else a BopFormatError naming the new name.
-    """
-    from cosy_lite.bop.params import RENAMED_DATASETS, renamed_dataset_message
-    from cosy_lite.errors import BopFormatError
-
-    if Path(dataset).is_dir():
-        return Path(dataset)
-    root = (data_root or default_data_root()) / dataset
-    if dataset not in RENAMED_DATASETS:
-        return root
-    new_root = root.with_name(RENAMED_DATASETS[dataset])
-    if new_root.is_dir():
-        print(f"note: {renamed_dataset_message(dataset)}: using {new_root}", file=sys.stderr)
-        return new_root
-    if root.is_dir():
-        return root  # BopDataset warns and reads it under the new name
-    raise BopFormatError(root, "--dataset", renamed_dataset_message(dataset) + f": use --dataset {RENAMED_DATASETS[dataset]}")
-
-
 def run(args: argparse.Namespace) -> int:
+    from cosy_lite.bop.folders import default_data_root
     from cosy_lite.config import load_config
     from cosy_lite.synth.generator import SynthConfig, generate
 

@@ -95,9 +95,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load the config, find (or generate) the dataset, validate it, train."""
+    from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.validate import check_dataset, report
-    from cosy_lite.synth.command import dataset_folder
 
     root = dataset_folder(args.dataset, args.data_root)
     name = dataset_name_of(root)

@@ -12,7 +12,7 @@ resumed run repeats the uninterrupted one.
 Validation: COCO box AP / AP50 / mask AP (pycocotools, :mod:`cosy_lite.eval.detection`) of the
 held-out images. Checkpoints store the detector config and the obj_id label map
 (``meta["detector_config"]``, ``meta["label_map"]``);
-:func:`cosy_lite.model_files.loaders.load_detector` rebuilds the module::
+:func:`cosy_lite.weights.loaders.load_detector` rebuilds the module::
 
     detector = load_detector("runs/ycbvsynth-detector/checkpoint.pt")  # detector.label_map: obj_ids
     dets = detect(detector, [image])  # image: [3,H,W] float in [0,1]; -> [Detections] (obj_ids, boxes px, masks)
@@ -35,11 +35,11 @@ from cosy_lite.bop.detections import Detections, ImageKey
 from cosy_lite.data.augmentation import AugmentationConfig, StrongAugmentation
 from cosy_lite.data.detection_dataset import DetectionDataset
 from cosy_lite.data.instances import hold_out_images, load_masks
-from cosy_lite.model_files.loaders import DETECTOR_KIND
-from cosy_lite.models.detector import Detector, DetectorConfig, LabelMap, detect, detector_losses
+from cosy_lite.nets.detector import Detector, DetectorConfig, LabelMap, detect, detector_losses
 from cosy_lite.structures import DetectionBatch, DetectionSample
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
+from cosy_lite.weights.loaders import DETECTOR_KIND
 
 KIND = DETECTOR_KIND
 
@@ -217,7 +217,7 @@ class DetectorTask:
         return collate_train(items)
 
     def checkpoint_meta(self) -> dict[str, Any]:
-        """What :func:`~cosy_lite.model_files.loaders.load_detector` needs (same keys as
+        """What :func:`~cosy_lite.weights.loaders.load_detector` needs (same keys as
         :meth:`Detector.meta`) + the dataset name."""
         return {"detector_config": asdict(self.cfg.detector), "label_map": self.label_map.to_dict(),
                 "dataset": self.cfg.dataset, "split": self.cfg.data.split}

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from cosy_lite.model_files.checkpoint import CheckpointError, load_checkpoint
+from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint
 
 
 def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) -> dict[str, Any]:

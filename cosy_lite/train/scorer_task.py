@@ -1,12 +1,12 @@
-"""Training task of the coarse scorer (:mod:`cosy_lite.models.appearance_scorer`).
+"""Training task of the coarse scorer (:mod:`cosy_lite.nets.appearance_scorer`).
 
 Data: the GT instances of ``data.split`` (visible masks standing in for detections), each described
 once by :mod:`cosy_lite.train.start_observations` (crop, silhouette IoU and rotation error of every
 template) and cached; ``data.val_images`` images held out (never trained on) for validation. The
-templates' frozen descriptors come from :class:`~cosy_lite.models.appearance_templates.AppearanceTemplates`
+templates' frozen descriptors come from :class:`~cosy_lite.nets.appearance_templates.AppearanceTemplates`
 (the same cache as inference). Per batch: the crops augmented (:func:`augment_crops`: scale and
 shift of the square, colour gain, brightness, gamma, noise, blur, a black occluder) -> the scorer ->
-scores of all templates of each instance's object -> :func:`~cosy_lite.models.appearance_scorer.listwise_loss`.
+scores of all templates of each instance's object -> :func:`~cosy_lite.nets.appearance_scorer.listwise_loss`.
 Validation: the share of held-out instances whose best-scored template is within 30 deg of GT, the
 flips (> 150 deg) of the textured objects, the median error.
 """
@@ -25,10 +25,10 @@ from torch.utils.data import Dataset
 
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG
-from cosy_lite.models.appearance_scorer import AppearanceScorer, listwise_loss
+from cosy_lite.nets.appearance_scorer import AppearanceScorer, listwise_loss
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
-from cosy_lite.train.start_observations import StartObservations, cache_key, observe_all
+from cosy_lite.train.start_observations import Instances, StartObservations, cache_key, observe_all
 
 
 @dataclass
@@ -122,15 +122,15 @@ class ScorerTask:
     def __init__(self, cfg: ScorerTrainConfig, dataset_root: str | Path, progress: bool = True):
         from cosy_lite.data.instances import hold_out_images
         from cosy_lite.data.pose_dataset import PoseDataset
-        from cosy_lite.models.appearance_templates import object_templates, textured_obj_ids
-        from cosy_lite.models.object_table import ObjectTable
-        from cosy_lite.render.renderer import PyrenderRenderer
+        from cosy_lite.nets.appearance_templates import object_templates, textured_obj_ids
+        from cosy_lite.nets.object_table import ObjectTable
+        from cosy_lite.render.renderer import GlRenderer
 
         self.cfg = cfg
         self.dataset = BopDataset(Path(dataset_root), cfg.dataset)
         cache = Path(cfg.data.cache_dir) if cfg.data.cache_dir else default_cache_dir()
         objects = ObjectTable.from_dataset(self.dataset, cfg.data.obj_ids or None)
-        renderer = PyrenderRenderer.from_dataset(self.dataset, shading=cfg.data.template_shading)
+        renderer = GlRenderer.from_dataset(self.dataset, shading=cfg.data.template_shading)
         self.obj_ids = list(objects.obj_ids)
         self.templates = object_templates(renderer, self.obj_ids, objects.diameters.detach().cpu().double().tolist(),
                                           self.dataset.models_dir, cache, n_rotations=cfg.data.n_templates)
@@ -150,7 +150,7 @@ class ScorerTask:
         renderer.close()
         self._initialised_from: str | None = None
 
-    def _observations(self, cache: Path, part: str, key: tuple, instances: Any, symmetries: dict,
+    def _observations(self, cache: Path, part: str, key: tuple, instances: Instances, symmetries: dict,
                       progress: bool) -> StartObservations:
         path = cache / f"start_observations_{part}_{cache_key(part, *key)}.npz"
         obs = StartObservations.load(path)

@@ -1,7 +1,7 @@
 """Instances as the start stage sees them, computed once: what the coarse scorer trains on.
 
 For each GT instance (its visible mask standing in for a detection): the crop that
-:func:`~cosy_lite.models.appearance_templates.detection_crop` cuts (uint8), the silhouette soft IoU
+:func:`~cosy_lite.nets.appearance_templates.detection_crop` cuts (uint8), the silhouette soft IoU
 of each of its object's templates, and each template pose's rotation error to GT (deg,
 symmetry-aware), the pose placed on the detection exactly as inference places it
 (:meth:`SilhouetteTemplates.observe` / ``poses``). ~80 ms per instance on one core, so a split is
@@ -17,17 +17,28 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from cosy_lite.geometry.symmetries import rotation_errors_deg
-from cosy_lite.models.appearance_templates import CROP_SIZE, detection_crop
-from cosy_lite.models.silhouette_templates import SilhouetteTemplates, mask_boxes
+from cosy_lite.nets.appearance_templates import CROP_SIZE, detection_crop
+from cosy_lite.nets.silhouette_templates import SilhouetteTemplates, mask_boxes
+
+if TYPE_CHECKING:
+    from cosy_lite.structures import PoseSample
 
 FIELDS = ("obj_ids", "crops", "iou", "errors_deg")
+
+
+class Instances(Protocol):
+    """What is described: GT instances by index (e.g. :class:`~cosy_lite.data.pose_dataset.PoseDataset`)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> PoseSample: ...
 
 
 @dataclass
@@ -42,10 +53,6 @@ class StartObservations:
 
     def __len__(self) -> int:
         return len(self.obj_ids)
-
-    def subset(self, index: Tensor | Sequence[int]) -> "StartObservations":
-        index = torch.as_tensor(index, dtype=torch.long)
-        return StartObservations(self.obj_ids[index], self.crops[index], self.iou[index], self.errors_deg[index])
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -71,7 +78,7 @@ class StartObservations:
             return None
 
 
-def observe(instance: Any, templates: SilhouetteTemplates,
+def observe(instance: PoseSample, templates: SilhouetteTemplates,
             symmetries: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray] | None:
     """(crop uint8 [3,S,S], iou [N], errors_deg [N]) of one :class:`~cosy_lite.structures.PoseSample`
     (``rgb``, ``mask``, ``K``, ``TCO``, ``obj_id``); ``symmetries [S,3,3]`` of its object. None when its
@@ -93,7 +100,7 @@ def observe(instance: Any, templates: SilhouetteTemplates,
     return crop, iou, errors
 
 
-def observe_all(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
+def observe_all(instances: Instances, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
                 desc: str = "start observations", progress: bool = True, workers: int = 1) -> StartObservations:
     """:func:`observe` for every item of ``instances`` (a dataset of PoseSamples); ``symmetries``:
     obj_id -> ``[S,3,3]``. Instances that cannot be observed are left out. ``workers`` > 1: that many
@@ -129,7 +136,7 @@ _CHUNK = 64  # instances per task of a worker
 _SHARED: tuple[Any, SilhouetteTemplates, dict[int, np.ndarray]] | tuple[()] = ()
 
 
-def _worker_start(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray]) -> None:
+def _worker_start(instances: Instances, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray]) -> None:
     global _SHARED
     torch.set_num_threads(1)
     _SHARED = (instances, templates, symmetries)
@@ -140,7 +147,7 @@ def _observe_chunk(index: range) -> tuple:
     return _observe_range(*_SHARED, index, None)
 
 
-def _observe_range(instances: Any, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
+def _observe_range(instances: Instances, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
                    index: range, bar: Any) -> tuple[list, list, list, list, int]:
     """(obj_ids, crops, ious, errors, number left out) of the instances ``index`` (numpy arrays: they
     travel back from a worker without torch's shared-memory handles)."""

@@ -18,17 +18,17 @@ def render_gt_overlay(ds: BopDataset, rec: ImageRecord, renderer: Renderer | Non
     """The image with, per GT instance, its stored visible mask filled and the contour of the
     model re-rendered at the GT pose (so a wrong pose or a wrong mask shows).
 
-    ``renderer``: of the dataset's ``models/`` (default: a :class:`PyrenderRenderer` made and closed here).
+    ``renderer``: of the dataset's ``models/`` (default: a :class:`GlRenderer` made and closed here).
     """
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.render.renderer import GlRenderer
 
     rgb = ds.load_rgb(rec)
     h, w = rgb.shape[:2]
     if not rec.gt:
         return rgb
-    owned: PyrenderRenderer | None = None  # made here, so closed here
+    owned: GlRenderer | None = None  # made here, so closed here
     if renderer is None:
-        renderer = owned = PyrenderRenderer.from_dataset(ds)
+        renderer = owned = GlRenderer.from_dataset(ds)
     try:
         depth = renderer.render([g.obj_id for g in rec.gt], np.stack([g.TCO for g in rec.gt]), rec.camera.K, (h, w),
                                 depth_only=True).depth

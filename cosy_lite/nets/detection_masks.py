@@ -1,5 +1,5 @@
 """Binary detection masks from Mask R-CNN's mask probabilities, one rule for the torch detector
-(:mod:`cosy_lite.models.detector`) and the onnxruntime one (:mod:`cosy_lite.export.onnx_models`).
+(:mod:`cosy_lite.nets.detector`) and the onnxruntime one (:mod:`cosy_lite.inference.onnx_runtime`).
 
 Pixels with probability above :data:`MASK_THRESHOLD` (torchvision's 0.5). A weakly trained mask head
 often stays below 0.5 everywhere for a detection whose box and class are right (measured on the demo

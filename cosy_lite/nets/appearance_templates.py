@@ -1,7 +1,7 @@
 """Start poses that look at the texture: silhouette templates ranked by appearance as well.
 
 A silhouette cannot tell a box from its flipped twin; the print on it can. Each silhouette template
-(:class:`~cosy_lite.models.silhouette_templates.SilhouetteTemplates`: the same rotations, the same
+(:class:`~cosy_lite.nets.silhouette_templates.SilhouetteTemplates`: the same rotations, the same
 on-axis template camera) is also rendered textured, shaded as the refiner renders, cut to the same
 square around its box as the occupancy grids, and described by a frozen ImageNet EfficientNet-Lite0
 (:class:`AppearanceDescriptor`: its stride-8 and stride-16 feature maps, unit length per cell). A
@@ -27,7 +27,7 @@ import hashlib
 import os
 import warnings
 from pathlib import Path
-from typing import Any, Sequence, cast
+from typing import TYPE_CHECKING, Sequence, cast
 
 import cv2
 import numpy as np
@@ -35,7 +35,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from cosy_lite.models.silhouette_templates import BOX_MARGIN, TEMPLATE_SIZE, MaskView, SilhouetteTemplates, file_key, mask_boxes
+from cosy_lite.nets.silhouette_templates import BOX_MARGIN, TEMPLATE_SIZE, MaskView, SilhouetteTemplates, file_key, mask_boxes
+
+if TYPE_CHECKING:
+    from cosy_lite.render.renderer import MeshRenderer, Renderer
 
 CROP_SIZE = 64  # px: the square each template and detection is described at
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -72,7 +75,7 @@ class AppearanceDescriptor(nn.Module):
 
     def __init__(self, trunk: str = "efficientnet_lite0", load_weights: bool = True):
         super().__init__()
-        from cosy_lite.models.pretrained import lite_features
+        from cosy_lite.nets.pretrained import lite_features
 
         # channels_last: 2.3x faster on this CPU (2,048 template crops of 64x64: 21 -> 9 s per object)
         self.trunk = lite_features(trunk, (2, 3), pretrained=load_weights).eval().to(memory_format=torch.channels_last)
@@ -95,12 +98,12 @@ class AppearanceTemplates:
         descriptor: an :class:`AppearanceDescriptor` (default: built, ImageNet weights read once).
         iou_weight: weight of the silhouette soft IoU in the score (with a ``scorer``: its own).
         cache_dir, model_keys: as :class:`SilhouetteTemplates` (descriptors kept as float16 ``.npz``).
-        scorer: a trained :class:`~cosy_lite.models.appearance_scorer.AppearanceScorer` that
+        scorer: a trained :class:`~cosy_lite.nets.appearance_scorer.AppearanceScorer` that
             describes the detections (the templates keep the frozen ``descriptor``); None: the
             frozen descriptor on both sides.
     """
 
-    def __init__(self, silhouettes: SilhouetteTemplates, renderer: Any, descriptor: AppearanceDescriptor | None = None,
+    def __init__(self, silhouettes: SilhouetteTemplates, renderer: Renderer, descriptor: AppearanceDescriptor | None = None,
                  iou_weight: float = 0.5, cache_dir: str | Path | None = None, model_keys: dict[int, str] | None = None,
                  scorer: nn.Module | None = None):
         self.silhouettes = silhouettes
@@ -143,6 +146,7 @@ class AppearanceTemplates:
         for s in range(0, len(TCO), RENDER_BATCH):
             T = TCO[s:s + RENDER_BATCH]
             r = self.renderer.render([obj_id] * len(T), T, self.silhouettes.template_K, (TEMPLATE_SIZE, TEMPLATE_SIZE))
+            assert r.rgb is not None  # (rendered with colour)
             with torch.no_grad():
                 out.append(self.descriptor(square_crops(r.rgb, r.mask, mask_boxes(r.mask))))
         return torch.cat(out)
@@ -160,7 +164,7 @@ class AppearanceTemplates:
         return similarity.double().numpy() + self.iou_weight * np.asarray(iou, dtype=np.float64)
 
 
-def object_templates(renderer: Any, obj_ids: Sequence[int], diameters: Sequence[float], models_dir: str | Path,
+def object_templates(renderer: MeshRenderer, obj_ids: Sequence[int], diameters: Sequence[float], models_dir: str | Path,
                      cache_dir: str | Path | None, appearance: bool = True, scorer: nn.Module | None = None,
                      n_rotations: int = 2048) -> SilhouetteTemplates:
     """The silhouette templates of ``obj_ids`` (``diameters`` in m), with their appearance scorer
@@ -173,7 +177,7 @@ def object_templates(renderer: Any, obj_ids: Sequence[int], diameters: Sequence[
     return templates
 
 
-def textured_obj_ids(renderer: Any, obj_ids: Sequence[int]) -> list[int]:
+def textured_obj_ids(renderer: MeshRenderer, obj_ids: Sequence[int]) -> list[int]:
     """The objects whose mesh carries a texture image (their print can tell a flipped pose)."""
     return [o for o in obj_ids if getattr(renderer.mesh(o).visual, "kind", None) == "texture"]
 

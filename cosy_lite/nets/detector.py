@@ -33,8 +33,8 @@ from torchvision.models.detection.mask_rcnn import MaskRCNNHeads, MaskRCNNPredic
 from torchvision.ops.feature_pyramid_network import FeaturePyramidNetwork, LastLevelMaxPool
 
 from cosy_lite.bop.detections import Detections
-from cosy_lite.models.backbones import norm_layer
-from cosy_lite.models.detection_masks import binary_masks
+from cosy_lite.nets.backbones import norm_layer
+from cosy_lite.nets.detection_masks import binary_masks
 
 if TYPE_CHECKING:
     from timm.models.efficientnet import EfficientNetFeatures
@@ -178,7 +178,7 @@ class LiteFPN(nn.Module):
     def __init__(self, trunk: str, fpn_channels: int, pretrained: bool, frozen_blocks: int = 1,
                  load_weights: bool = True):
         super().__init__()
-        from cosy_lite.models.pretrained import freeze_batchnorm, lite_features
+        from cosy_lite.nets.pretrained import freeze_batchnorm, lite_features
 
         # load_weights=False: the same (frozen) structure, weights to come from a checkpoint
         body = lite_features(trunk, (1, 2, 3, 4), pretrained=pretrained and load_weights)
@@ -264,7 +264,7 @@ class Detector(nn.Module):
 
     def initialised_from(self) -> str:
         """The pretrained weights that initialised the trunk, or ``"scratch"``."""
-        from cosy_lite.models.pretrained import pretrained_source
+        from cosy_lite.nets.pretrained import pretrained_source
 
         trunk = DETECTORS[self.config.name].ctor
         if self.config.pretrained and isinstance(trunk, str):

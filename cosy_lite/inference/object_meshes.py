@@ -1,7 +1,7 @@
 """The objects a predictor estimates: their BOP ``models/`` folder, point table, renderer and templates.
 
 Built once by the predictor's factories (:meth:`~cosy_lite.inference.predictor.Predictor.from_checkpoints`,
-``from_onnx``): :class:`ObjectModels` reads a ``models/`` folder without a dataset;
+``from_onnx``): :class:`ObjectMeshes` reads a ``models/`` folder without a dataset;
 :func:`objects_and_renderer` gives the object table, the renderer with the networks' shading and the
 ICP symmetry sets; :func:`start_templates` the silhouette templates of ``start="templates"``.
 """
@@ -11,13 +11,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError, CosyLiteError
 from cosy_lite.inference.starts import TEMPLATE_STARTS
-from cosy_lite.model_files.loaders import PoseModel
-from cosy_lite.models.silhouette_templates import SilhouetteTemplates
+from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
+from cosy_lite.weights.loaders import PoseModel
+
+if TYPE_CHECKING:
+    from torch import nn
+
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.render.renderer import MeshRenderer
 
 
 class SetupError(CosyLiteError):
@@ -26,10 +33,10 @@ class SetupError(CosyLiteError):
 
 
 @dataclass
-class ObjectModels:
+class ObjectMeshes:
     """The BOP ``models/`` folder of the objects (PLY in mm, ``models_info.json``), read lazily.
 
-    Has what :meth:`cosy_lite.models.object_table.ObjectTable.from_dataset` reads of a dataset
+    Has what :meth:`cosy_lite.nets.object_table.ObjectTable.from_dataset` reads of a dataset
     (``models_dir``, ``models_info``, ``load_model``), so no dataset folder is needed.
     """
 
@@ -53,7 +60,7 @@ class ObjectModels:
         return io.load_model(self.models_dir / f"obj_{int(obj_id):06d}.ply")
 
 
-def object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
+def object_meshes(models_dir: str | Path | None, dataset: BopDataset | str | Path | None) -> ObjectMeshes:
     """The objects' BOP ``models/`` folder: ``models_dir`` or ``dataset``'s (exactly one given)."""
     from cosy_lite.bop.dataset import BopDataset
 
@@ -61,9 +68,9 @@ def object_models(models_dir: str | Path | None, dataset: Any) -> ObjectModels:
         raise SetupError("give exactly one of models_dir (a BOP models/ folder) and dataset")
     if dataset is not None:
         ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
-        return ObjectModels(ds.models_dir)
+        return ObjectMeshes(ds.models_dir)
     assert models_dir is not None  # (exactly one of the two is given)
-    return ObjectModels(Path(models_dir))
+    return ObjectMeshes(Path(models_dir))
 
 
 def render_shading(coarse: PoseModel | None, refiner: PoseModel | None) -> str:
@@ -79,28 +86,28 @@ def render_shading(coarse: PoseModel | None, refiner: PoseModel | None) -> str:
     return coarse.render_shading
 
 
-def objects_and_renderer(models: ObjectModels, ids: list[int], n_points: int | None, icp: bool,
+def objects_and_renderer(models: ObjectMeshes, ids: list[int], n_points: int | None, icp: bool,
                          shading: str = "flat") -> tuple[Any, Any, Any]:
     """(ObjectTable of ``ids``, a renderer of ``models`` with ``shading``, ICP symmetry sets or None)."""
     from cosy_lite.geometry.symmetries import symmetry_transforms
-    from cosy_lite.models.object_table import ObjectTable
-    from cosy_lite.render.renderer import PyrenderRenderer
+    from cosy_lite.nets.object_table import ObjectTable
+    from cosy_lite.render.renderer import GlRenderer
 
     kwargs = {} if n_points is None else {"n_points": n_points}
     objects = ObjectTable.from_dataset(models, ids, **kwargs)  # type: ignore[arg-type]
     syms = {i: symmetry_transforms(models.models_info[i]) for i in ids} if icp else None
-    return objects, PyrenderRenderer(models_dir=models.models_dir, shading=shading), syms
+    return objects, GlRenderer(models_dir=models.models_dir, shading=shading), syms
 
 
-def start_templates(start: str, models: ObjectModels, objects: Any, renderer: Any,
-                    cache_dir: str | Path | None, scorer: Any = None) -> SilhouetteTemplates | None:
+def start_templates(start: str, models: ObjectMeshes, objects: ObjectTable, renderer: MeshRenderer,
+                    cache_dir: str | Path | None, scorer: nn.Module | None = None) -> SilhouetteTemplates | None:
     """The templates of a template start (``"templates"``, ``"appearance"``: with appearance
     descriptors, and the trained ``scorer`` describing the detections when given; None otherwise),
     cached in ``cache_dir`` by the hash of each object's mesh file
-    (:func:`~cosy_lite.models.appearance_templates.object_templates`)."""
+    (:func:`~cosy_lite.nets.appearance_templates.object_templates`)."""
     if start not in TEMPLATE_STARTS:
         return None
-    from cosy_lite.models.appearance_templates import object_templates
+    from cosy_lite.nets.appearance_templates import object_templates
 
     return object_templates(renderer, objects.obj_ids, objects.diameters.detach().cpu().double().tolist(),
                             models.models_dir, cache_dir, appearance=start == "appearance", scorer=scorer)

@@ -2,7 +2,7 @@
 
 Input: the image crop and the rendered crop stacked on channels, ``[B, 6, H, W]`` in ``[0, 1]``
 (normalised inside, so ONNX users feed plain ``[0, 1]`` images). Output: the pose update
-``delta [B, 9]`` applied by :func:`cosy_lite.models.pose_update.apply_pose_update`:
+``delta [B, 9]`` applied by :func:`cosy_lite.nets.pose_update.apply_pose_update`:
 
 - ``delta[:, 0:6]``: 6D rotation residual, added to the identity 6D (rotation in the camera frame);
 - ``delta[:, 6:8]``: ``(vx, vy)`` shift of the projected object centre [crop pixels];
@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from cosy_lite.models.backbones import Backbone
+from cosy_lite.nets.backbones import Backbone
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -50,7 +50,7 @@ class PoseNet(nn.Module):
     """Backbone + zero-initialised linear head.
 
     Args:
-        backbone: key of :data:`cosy_lite.models.backbones.BACKBONES` (e.g. ``"resnet34"``).
+        backbone: key of :data:`cosy_lite.nets.backbones.BACKBONES` (e.g. ``"resnet34"``).
         in_channels: input channels (6: image crop + rendered crop, each RGB).
         n_out: outputs of the head (9 for the update described in the module docstring).
         norm: ``"batch"`` or ``"group"`` normalisation in the backbone.

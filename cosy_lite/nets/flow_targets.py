@@ -1,4 +1,4 @@
-"""Training targets and loss of the flow refiner (:class:`~cosy_lite.models.flow_pose_net.FlowPoseNet`).
+"""Training targets and loss of the flow refiner (:class:`~cosy_lite.nets.flow_pose_net.FlowPoseNet`).
 
 The GT pose gives, for free, where each rendered surface point really is: a rendering cell with
 depth ``d`` at crop pixel ``uv`` is the 3D point ``X = d K_crop^-1 (uv, 1)`` at the input pose; at the
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from cosy_lite.models.flow_pose_solver import backproject, cell_centres, sample_cells
+from cosy_lite.nets.flow_pose_solver import backproject, cell_centres, sample_cells
 
 
 @dataclass

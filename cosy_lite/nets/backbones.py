@@ -125,8 +125,3 @@ class Backbone(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x [B, in_channels, H, W]`` float -> pooled features ``[B, out_features]``."""
         return self.net(x)
-
-
-def build_backbone(name: str, in_channels: int = 3, norm: str = "batch") -> Backbone:
-    """A :class:`Backbone` (randomly initialised; see the module docstring)."""
-    return Backbone(name, in_channels, norm)

@@ -4,7 +4,7 @@
 or ``$COSY_LITE_MODELS/NAME/``) holds, for the dataset
 NAME (e.g. ``ycbvsynth``), each trained network as ``KIND.safetensors`` or, above
 :data:`MAX_FILE_BYTES`, its shards ``KIND-0000i-of-0000N.safetensors`` (fp16 weights + the training
-config and metadata as JSON, :func:`~cosy_lite.model_files.checkpoint.save_weights`: loading runs no
+config and metadata as JSON, :func:`~cosy_lite.weights.checkpoint.save_weights`: loading runs no
 code) with its card ``KIND.json`` (dataset, object ids, exact training command, steps, crops seen,
 wall time, machine, held-out metrics; ``weights``: the files, ``files``: each one's size in bytes
 and sha256), and ``pipeline.json``: how the set is meant to run (start poses, candidates, refiner
@@ -52,7 +52,7 @@ def _file_entry(v: Any) -> bool:
 
 
 def _id_list(v: Any) -> bool:
-    from cosy_lite.model_files.checkpoint import is_id_list
+    from cosy_lite.weights.checkpoint import is_id_list
 
     return is_id_list(v)
 
@@ -166,7 +166,7 @@ def checked_weights(card_path: Path, card: dict[str, Any], kind: str) -> list[Pa
     the card's fields typed as :data:`CARD_FIELDS`; every file named there present, no other file of
     ``kind``, one file or all shards of one; sizes and sha256 as ``files`` gives them. Raises
     ReferenceModelError ``CARD: field 'F': ...`` naming the file."""
-    from cosy_lite.model_files.checkpoint import describe_value, shard_paths
+    from cosy_lite.weights.checkpoint import describe_value, shard_paths
 
     def fail(fld: str, problem: str) -> ReferenceModelError:
         return ReferenceModelError(f"{card_path}: field '{fld}': {problem}")
@@ -244,7 +244,7 @@ def _same_weights(path: Path | None, ckpt: Any) -> bool:
     """Whether the weights file at ``path`` holds ``ckpt``'s step and tensors (as fp16)."""
     import torch
 
-    from cosy_lite.model_files.checkpoint import CheckpointError, load_weights
+    from cosy_lite.weights.checkpoint import CheckpointError, load_weights
 
     if path is None:
         return False
@@ -268,7 +268,7 @@ def publish(checkpoint: str | Path, folder: str | Path, card: dict[str, Any]) ->
     (command, machine, metrics ...) plus what the checkpoint knows (kind, dataset, object ids, step,
     config, training seconds) and the files (``weights``; ``files``: size and sha256 of each).
     Returns (the weights files, the card)."""
-    from cosy_lite.model_files.checkpoint import load_checkpoint, save_weights, shard_paths
+    from cosy_lite.weights.checkpoint import load_checkpoint, save_weights, shard_paths
 
     ckpt = load_checkpoint(checkpoint)
     if ckpt.kind not in KINDS:

@@ -1,15 +1,15 @@
 """The pose network with an ImageNet-pretrained siamese trunk and a displacement layer.
 
-Same contract as :class:`~cosy_lite.models.pose_net.PoseNet` (tensor in, tensor out): input the
+Same contract as :class:`~cosy_lite.nets.pose_net.PoseNet` (tensor in, tensor out): input the
 image crop and the rendered crop stacked on channels, ``[B, 6, H, W]`` in ``[0, 1]``; output the
-pose update ``delta [B, 9]`` of :mod:`cosy_lite.models.pose_update`, from a zero-initialised head
+pose update ``delta [B, 9]`` of :mod:`cosy_lite.nets.pose_update`, from a zero-initialised head
 (identity update untrained) scaled by ``output_scale`` (see ``pose_net``).
 
 Why not a 6-channel early-fusion CNN (``PoseNet``): on the 2-core CPU it does not learn real
 crops within tens of thousands of samples (bench/RESULTS.md). This network builds in what the
 task needs instead of learning it:
 
-* one **pretrained EfficientNet-Lite** trunk (``cosy_lite.models.pretrained``) applied to the image
+* one **pretrained EfficientNet-Lite** trunk (``cosy_lite.nets.pretrained``) applied to the image
   crop and to the rendering separately, so both are described by ImageNet features whatever the
   renderer's flat shading (template matching with those features alone finds the shift of the
   object to ~2 px at stride 4);
@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from cosy_lite.geometry.crops import CROP_RESOLUTION
-from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD, N_OUT, output_scale_vector
+from cosy_lite.nets.pose_net import IMAGENET_MEAN, IMAGENET_STD, N_OUT, output_scale_vector
 
 TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16
 CORRELATION_GAIN = 10.0  # the mean-over-channels dot products are ~0.1: brought to order 1
@@ -75,13 +75,13 @@ class SiamesePoseNet(nn.Module):
     """Pretrained siamese trunk + correlation + soft-argmax pooling + zero-initialised head.
 
     Args:
-        trunk: a key of :data:`cosy_lite.models.pretrained.WEIGHTS` (``"efficientnet_lite0"``).
+        trunk: a key of :data:`cosy_lite.nets.pretrained.WEIGHTS` (``"efficientnet_lite0"``).
         pretrained: ImageNet weights for the trunk (False: random, for tests and ablations).
         load_weights: False builds the same network without reading the weights file (the
             weights then come from a checkpoint).
         corr_radius: displacements of the cost volume, in stride-8 cells (0: no correlation).
         width: channels of the fusion layers (the last ones have ``2 * width``).
-        output_scale: as :class:`~cosy_lite.models.pose_net.PoseNet`.
+        output_scale: as :class:`~cosy_lite.nets.pose_net.PoseNet`.
         crop_resolution: (h, w) of the input crops (multiples of 16 with ``flat_channels``).
         flat_channels: channels of the flattened stride-16 map fed to the head (0: none).
     """
@@ -95,7 +95,7 @@ class SiamesePoseNet(nn.Module):
                  corr_radius: int = 3, width: int = 128, output_scale: tuple[float, float, float] = (0.25, 0.04, 0.06),
                  crop_resolution: tuple[int, int] = CROP_RESOLUTION, flat_channels: int = 0):
         super().__init__()
-        from cosy_lite.models.pretrained import lite_features
+        from cosy_lite.nets.pretrained import lite_features
 
         self.in_channels = 6
         self.trunk = lite_features(trunk, TRUNK_LEVELS, pretrained=pretrained and load_weights)

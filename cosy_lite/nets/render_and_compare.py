@@ -5,12 +5,12 @@ Per item: crop box from the current pose (projected model points, centred on the
 the current pose with ``K_crop``, the 6-channel input (crop, rendering) -> network -> update.
 The network itself stays tensor in / tensor out. Two kinds of output (``output``):
 
-* ``"delta"``: the 9 numbers of the image-space update (:class:`~cosy_lite.models.pose_net.PoseNet`,
-  :class:`~cosy_lite.models.siamese_pose_net.SiamesePoseNet`), applied by
-  :func:`~cosy_lite.models.pose_update.apply_pose_update`;
+* ``"delta"``: the 9 numbers of the image-space update (:class:`~cosy_lite.nets.pose_net.PoseNet`,
+  :class:`~cosy_lite.nets.siamese_pose_net.SiamesePoseNet`), applied by
+  :func:`~cosy_lite.nets.pose_update.apply_pose_update`;
 * ``"flow"``: a displacement field of the rendering's cells
-  (:class:`~cosy_lite.models.flow_pose_net.FlowPoseNet`), turned into a pose with the rendering's
-  depth by :func:`~cosy_lite.models.flow_pose_solver.pose_from_flow`.
+  (:class:`~cosy_lite.nets.flow_pose_net.FlowPoseNet`), turned into a pose with the rendering's
+  depth by :func:`~cosy_lite.nets.flow_pose_solver.pose_from_flow`.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from torch import Tensor
 
 from cosy_lite.geometry.crops import crop_boxes, crop_images, crop_intrinsics
 from cosy_lite.geometry.pose_checks import valid_poses
-from cosy_lite.models.pose_update import apply_pose_update
+from cosy_lite.nets.pose_update import apply_pose_update
 from cosy_lite.render.renderer import Renderer
 
 Size = tuple[int, int]
@@ -72,8 +72,8 @@ def make_inputs(images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int], 
 def updated_poses(TCO: Tensor, inp: NetInputs, out: Tensor, output: str = "delta") -> Tensor:
     """The poses ``TCO [B,4,4]`` after the network answered ``out`` to ``inp`` (see the module doc)."""
     if output == "flow":
-        from cosy_lite.models.flow_pose_net import FlowPoseNet
-        from cosy_lite.models.flow_pose_solver import pose_from_flow
+        from cosy_lite.nets.flow_pose_net import FlowPoseNet
+        from cosy_lite.nets.flow_pose_solver import pose_from_flow
 
         return pose_from_flow(TCO, inp.K_crop, inp.depth, out, FlowPoseNet.stride).to(TCO.dtype)
     if output != "delta":
@@ -131,10 +131,10 @@ def refine_and_score(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor,
                      batch_size: int = 32) -> tuple[Tensor, Tensor]:
     """One iteration of a flow network from ``TCO [B,4,4]`` (arguments as :func:`iterate_poses`):
     (poses ``[B,4,4]``, confidence ``[B]`` float64: the network's mean confidence over the rendered
-    cells, :func:`~cosy_lite.models.flow_pose_solver.flow_confidence`). Used to rank candidate start
+    cells, :func:`~cosy_lite.nets.flow_pose_solver.flow_confidence`). Used to rank candidate start
     poses. Invalid poses are not run: they keep their value and score :data:`NOT_SCORED`."""
-    from cosy_lite.models.flow_pose_net import FlowPoseNet
-    from cosy_lite.models.flow_pose_solver import flow_confidence
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
+    from cosy_lite.nets.flow_pose_solver import flow_confidence
 
     refined = TCO.clone()
     score = torch.full((len(TCO),), NOT_SCORED, dtype=torch.float64, device=TCO.device)

@@ -1,6 +1,6 @@
 """The symmetry-aware disentangled point-matching loss of CosyPose (torch, metres).
 
-The network output ``delta [B,9]`` (see :mod:`cosy_lite.models.pose_update`) is scored by three
+The network output ``delta [B,9]`` (see :mod:`cosy_lite.nets.pose_update`) is scored by three
 partial poses, each taking one part from the prediction and the others from the ground truth:
 
 * rotation: ``(R_pred, t_gt)``, ``R_pred = dR R_in``;
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from cosy_lite.models.pose_update import POSE_DIM, apply_pose_update, full_precision, rotation_update
+from cosy_lite.nets.pose_update import POSE_DIM, apply_pose_update, full_precision, rotation_update
 
 
 @dataclass

@@ -3,7 +3,7 @@
 
 A checkpoint stores the config as ``meta["net"]`` (a dict), so the same function builds the
 network to train (:class:`~cosy_lite.train.pose_task.PoseTask`) and the one its weights are loaded
-into (:func:`~cosy_lite.model_files.loaders.load_pose_model`, export).
+into (:func:`~cosy_lite.weights.loaders.load_pose_model`, export).
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ import torch
 
 from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.crops import CROP_RESOLUTION
-from cosy_lite.models.pose_net import OUTPUT_SCALES, PoseNet
+from cosy_lite.nets.pose_net import OUTPUT_SCALES, PoseNet
 
 POSE_ARCHS = ("early", "siamese", "flow")
-PRETRAINED_ARCHS = ("siamese", "flow")  # trunks from cosy_lite.models.pretrained
+PRETRAINED_ARCHS = ("siamese", "flow")  # trunks from cosy_lite.nets.pretrained
 
 
 @dataclass
@@ -46,8 +46,8 @@ class PoseNetConfig:
 
 def check_net_config(cfg: PoseNetConfig) -> None:
     """ConfigError naming the field when ``net.arch`` / ``net.backbone`` / ``net.render_shading`` do not fit."""
-    from cosy_lite.models.backbones import BACKBONES
-    from cosy_lite.models.pretrained import WEIGHTS
+    from cosy_lite.nets.backbones import BACKBONES
+    from cosy_lite.nets.pretrained import WEIGHTS
     from cosy_lite.render.renderer import SHADINGS
 
     if cfg.arch not in POSE_ARCHS:
@@ -78,12 +78,12 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
     # (lengths: the networks unpack 3 scales and an (h, w) crop resolution, raising otherwise)
     scale = cast(tuple[float, float, float], tuple(OUTPUT_SCALES[kind] if cfg.output_scale is None else cfg.output_scale))
     if cfg.arch == "flow":
-        from cosy_lite.models.flow_pose_net import FlowPoseNet
+        from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
         return FlowPoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
                            radius=cfg.corr_radius, descriptor=cfg.width)
     if cfg.arch == "siamese":
-        from cosy_lite.models.siamese_pose_net import SiamesePoseNet
+        from cosy_lite.nets.siamese_pose_net import SiamesePoseNet
 
         return SiamesePoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
                               corr_radius=cfg.corr_radius, width=cfg.width, output_scale=scale,

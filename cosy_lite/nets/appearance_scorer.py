@@ -1,6 +1,6 @@
 """The coarse network that scores hypotheses: a trained view of the detection against fixed templates.
 
-:mod:`cosy_lite.models.appearance_templates` ranks an object's 2,048 template rotations by the
+:mod:`cosy_lite.nets.appearance_templates` ranks an object's 2,048 template rotations by the
 cosine similarity of frozen ImageNet features (textured template rendering against the image inside
 the detection mask) + silhouette IoU. Frozen features see a rendering and a photograph of the same
 view as different things (light, noise, blur, occlusion): the best-scored template is within 30 deg
@@ -28,11 +28,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from cosy_lite.models.appearance_templates import AppearanceDescriptor
+from cosy_lite.nets.appearance_templates import AppearanceDescriptor
 
 
 class AppearanceScorer(nn.Module):
-    """``[B,3,S,S]`` crops in [0, 1] (as :func:`~cosy_lite.models.appearance_templates.square_crops`
+    """``[B,3,S,S]`` crops in [0, 1] (as :func:`~cosy_lite.nets.appearance_templates.square_crops`
     cuts them) -> ``[B,D]`` descriptors comparable with the frozen template descriptors.
 
     Its BatchNorm layers keep the ImageNet statistics in training too (their affine weights train):

@@ -5,14 +5,14 @@ Input as every pose network here: the image crop and the rendering stacked on ch
 ``[B, 3, H/8, W/8]`` = (dx, dy) in crop pixels from each rendering cell to the matching image
 position, and a confidence in ``[0, 1]``. The pose update is then geometry, not learning: the
 rendering's depth makes every cell a 2D-3D correspondence and
-:func:`cosy_lite.models.flow_pose_solver.pose_from_flow` fits the pose to them.
+:func:`cosy_lite.nets.flow_pose_solver.pose_from_flow` fits the pose to them.
 
 Why (bench/RESULTS.md, 2026-12-01): a network regressing the 9 update numbers from the pair learns
 from one number-vector per crop and did not halve the refiner errors in 62,000 crops; the flow
 target gives a supervised displacement for every visible rendered cell (hundreds per crop), which
-the GT pose provides for free (:mod:`cosy_lite.models.flow_targets`).
+the GT pose provides for free (:mod:`cosy_lite.nets.flow_targets`).
 
-Layers: one ImageNet-pretrained EfficientNet-Lite trunk (:mod:`cosy_lite.models.pretrained`) on the
+Layers: one ImageNet-pretrained EfficientNet-Lite trunk (:mod:`cosy_lite.nets.pretrained`) on the
 crop and the rendering separately (stride 8 and 16 maps; the stride-16 one upsampled for context) ->
 a small trainable descriptor head -> unit descriptors -> the local correlation (cost volume) of each
 rendering cell with the image cells within ``+-radius`` cells, divided by a learnt temperature ->
@@ -27,8 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cosy_lite.models.flow_pose_solver import FLOW_STRIDE
-from cosy_lite.models.pose_net import IMAGENET_MEAN, IMAGENET_STD
+from cosy_lite.nets.flow_pose_solver import FLOW_STRIDE
+from cosy_lite.nets.pose_net import IMAGENET_MEAN, IMAGENET_STD
 
 TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16
 FLOW_CHANNELS = 3  # dx, dy (crop px), confidence
@@ -63,7 +63,7 @@ class FlowPoseNet(nn.Module):
     """Pretrained siamese trunk -> descriptors -> local cost volume -> flow and confidence.
 
     Args:
-        trunk: a key of :data:`cosy_lite.models.pretrained.WEIGHTS` (``"efficientnet_lite0"``).
+        trunk: a key of :data:`cosy_lite.nets.pretrained.WEIGHTS` (``"efficientnet_lite0"``).
         pretrained: ImageNet weights for the trunk (False: random, for tests and ablations).
         load_weights: False builds the same network without reading the weights file (the
             weights then come from a checkpoint).
@@ -82,7 +82,7 @@ class FlowPoseNet(nn.Module):
     def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
                  radius: int = 4, descriptor: int = 64, temperature: float = 0.05):
         super().__init__()
-        from cosy_lite.models.pretrained import lite_features
+        from cosy_lite.nets.pretrained import lite_features
 
         if radius < 1:
             raise ValueError(f"radius must be >= 1 cell, got {radius}")

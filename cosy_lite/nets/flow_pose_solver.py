@@ -1,6 +1,6 @@
 """The pose update of a flow refiner: from a dense 2D displacement field to a new pose (torch).
 
-The flow network (:class:`~cosy_lite.models.flow_pose_net.FlowPoseNet`) says, for each stride-``s``
+The flow network (:class:`~cosy_lite.nets.flow_pose_net.FlowPoseNet`) says, for each stride-``s``
 cell of the rendering, where that surface point is in the image crop (``flow [B,2,h,w]``, crop
 pixels) and how sure it is (``confidence [B,h,w]``). The rendering's depth at the cell centre gives
 the point in 3D at the current pose, so every cell is a 2D-3D correspondence; the new pose is the
@@ -9,7 +9,7 @@ weighted least-squares fit of those correspondences (perspective-n-point):
     min over (dR, t)   sum_cells  w * huber(| project(K_crop, dR (X - t_in) + t) - (uv + flow) |)
 
 with ``X`` the cell's 3D point (camera frame, current pose), rotation about the object origin
-(``R_new = dR R_in``, as :mod:`cosy_lite.models.pose_update`), solved by damped Gauss-Newton from
+(``R_new = dR R_in``, as :mod:`cosy_lite.nets.pose_update`), solved by damped Gauss-Newton from
 the current pose. Items with fewer than ``MIN_CELLS`` confident rendered cells, or a non-finite or
 behind-the-camera solution, keep their input pose.
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from cosy_lite.models.pose_update import full_precision
+from cosy_lite.nets.pose_update import full_precision
 
 FLOW_STRIDE = 8  # px per cell of the flow field (FlowPoseNet.stride)
 MIN_CELLS = 6  # correspondences needed for a pose (6 unknowns)

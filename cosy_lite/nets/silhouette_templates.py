@@ -21,10 +21,13 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:
+    from cosy_lite.render.renderer import Renderer
 
 TEMPLATE_FOCAL = 300.0  # px, of the template camera
 TEMPLATE_SIZE = 128  # px, square template images
@@ -135,7 +138,7 @@ class SilhouetteTemplates:
     Templates are rendered on first use of each object (~4 s per object for 2,048 on one core).
     """
 
-    def __init__(self, renderer: Any, obj_ids: Sequence[int], diameters: Sequence[float],
+    def __init__(self, renderer: Renderer, obj_ids: Sequence[int], diameters: Sequence[float],
                  n_rotations: int = 2048, grid: int = 32, seed: int = 0, rotations: np.ndarray | None = None,
                  cache_dir: str | Path | None = None, model_keys: Mapping[int, str] | None = None):
         if rotations is not None:
@@ -204,7 +207,7 @@ class SilhouetteTemplates:
               rgb: np.ndarray | None = None) -> TemplateMatches:
         """The ``top_k`` template poses of each detection: ``masks [B,H,W]`` bool (visible masks),
         ``obj_ids [B]``, ``K [B,3,3]`` or ``[3,3]`` intrinsics of the image (px). With an
-        ``appearance`` scorer (:class:`~cosy_lite.models.appearance_templates.AppearanceTemplates`)
+        ``appearance`` scorer (:class:`~cosy_lite.nets.appearance_templates.AppearanceTemplates`)
         and the image ``rgb [H,W,3]`` uint8, templates are ranked by appearance + silhouette
         (its ``score``), else by silhouette soft IoU alone."""
         masks = np.asarray(masks, dtype=bool)

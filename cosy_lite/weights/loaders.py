@@ -7,8 +7,8 @@ Detector: :func:`load_detector` (``kind`` "detector", written by
 :class:`cosy_lite.train.detector_task.DetectorTask`: ``meta = {"detector_config", "label_map", ...}``).
 Coarse scorer: :func:`load_scorer` (``kind`` "scorer", written by
 :class:`cosy_lite.train.scorer_task.ScorerTask`: ``meta = {"obj_ids", "trunk", "templates", ...}``).
-Every problem raises :class:`~cosy_lite.model_files.checkpoint.CheckpointError` naming the file.
-Exported networks (onnxruntime) are read by :func:`cosy_lite.export.onnx_models.load_onnx_models`
+Every problem raises :class:`~cosy_lite.weights.checkpoint.CheckpointError` naming the file.
+Exported networks (onnxruntime) are read by :func:`cosy_lite.inference.onnx_runtime.load_onnx_models`
 into the same :class:`PoseModel`.
 """
 
@@ -18,13 +18,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from cosy_lite.model_files.checkpoint import Checkpoint, CheckpointError, describe_value, is_id_list, load_checkpoint
+from cosy_lite.weights.checkpoint import Checkpoint, CheckpointError, describe_value, is_id_list, load_checkpoint
 
 if TYPE_CHECKING:
     import torch
     from torch import nn
 
-    from cosy_lite.models.detector import Detector
+    from cosy_lite.nets.detector import Detector
 
 Size = tuple[int, int]
 DETECTOR_KIND = "detector"
@@ -46,10 +46,10 @@ META_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
 class PoseModel:
     """A pose network (coarse or refiner) and what it was trained for.
 
-    net: the :class:`~cosy_lite.models.pose_net.PoseNet` (eval mode), or any callable
+    net: the :class:`~cosy_lite.nets.pose_net.PoseNet` (eval mode), or any callable
     ``[B,6,h,w] -> [B,9]`` (or flow) tensor function such as an
-    :class:`~cosy_lite.export.onnx_models.OnnxPoseNet` (called inside the same loop,
-    :func:`~cosy_lite.models.render_and_compare.iterate_poses`); crop_resolution: (h, w) px of its input
+    :class:`~cosy_lite.inference.onnx_runtime.OnnxPoseNet` (called inside the same loop,
+    :func:`~cosy_lite.nets.render_and_compare.iterate_poses`); crop_resolution: (h, w) px of its input
     crops; obj_ids: objects it was trained on; path: the checkpoint or ``.onnx`` file (None if
     built in code).
     """
@@ -82,8 +82,8 @@ def _meta_field(ckpt: Checkpoint, path: Path, name: str, from_config: bool = Tru
 
 def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "cpu") -> PoseModel:
     """The ``kind`` ("coarse" | "refiner") network of the checkpoint at ``path``, in eval mode on ``device``."""
-    from cosy_lite.model_files.pose_nets import PoseNetConfig, build_pose_net
-    from cosy_lite.models.render_and_compare import network_output
+    from cosy_lite.nets.render_and_compare import network_output
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
     path = Path(path)
     ckpt = load_checkpoint(path, kind=kind)
@@ -103,13 +103,13 @@ def load_pose_model(path: str | Path, kind: str, device: str | torch.device = "c
 
 
 def load_detector(path: str | Path, device: str | torch.device = "cpu") -> Detector:
-    """The trained :class:`~cosy_lite.models.detector.Detector` of the checkpoint at ``path`` (eval
+    """The trained :class:`~cosy_lite.nets.detector.Detector` of the checkpoint at ``path`` (eval
     mode, on ``device``); its obj_id label map is ``.label_map``.
 
     Raises CheckpointError naming the file when it is not a detector checkpoint, lacks the
     detector config / label map, or its weights do not fit the architecture they describe.
     """
-    from cosy_lite.models.detector import Detector
+    from cosy_lite.nets.detector import Detector
 
     ckpt = load_checkpoint(path, kind=DETECTOR_KIND)
     missing = [k for k in ("detector_config", "label_map") if k not in ckpt.meta]
@@ -130,7 +130,7 @@ def load_detector(path: str | Path, device: str | torch.device = "cpu") -> Detec
 
 @dataclass
 class ScorerModel:
-    """The coarse scorer (:class:`~cosy_lite.models.appearance_scorer.AppearanceScorer`, eval mode),
+    """The coarse scorer (:class:`~cosy_lite.nets.appearance_scorer.AppearanceScorer`, eval mode),
     the objects it was trained on, and how the templates it was trained against were rendered
     (``shading``: its templates must be rendered the same way)."""
 
@@ -142,8 +142,8 @@ class ScorerModel:
 
 def load_scorer(path: str | Path, device: str | torch.device = "cpu") -> ScorerModel:
     """The coarse scorer of the checkpoint or weights file at ``path``, in eval mode on ``device``."""
-    from cosy_lite.models.appearance_scorer import AppearanceScorer
-    from cosy_lite.models.pretrained import WEIGHTS
+    from cosy_lite.nets.appearance_scorer import AppearanceScorer
+    from cosy_lite.nets.pretrained import WEIGHTS
 
     path = Path(path)
     ckpt = load_checkpoint(path, kind=SCORER_KIND)

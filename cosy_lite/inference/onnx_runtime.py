@@ -2,11 +2,11 @@
 
 - :class:`OnnxPoseNet`: ``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` (numpy in ->
   numpy out with :meth:`~OnnxPoseNet.run`; torch tensors in -> tensor out when called, so it
-  drops into :func:`~cosy_lite.models.render_and_compare.iterate_poses`).
+  drops into :func:`~cosy_lite.nets.render_and_compare.iterate_poses`).
 - :class:`OnnxDetector`: ``rgb [H,W,3]`` uint8 -> boxes, obj_ids, scores, masks (numpy,
   :meth:`~OnnxDetector.run`) or :class:`~cosy_lite.bop.detections.Detections` (:meth:`~OnnxDetector.detect`).
 - :func:`load_onnx_models`: an export folder (``manifest.json`` + ``.onnx`` files) -> these
-  sessions, the pose networks as :class:`~cosy_lite.model_files.loaders.PoseModel` (precision fp32
+  sessions, the pose networks as :class:`~cosy_lite.weights.loaders.PoseModel` (precision fp32
   or int8), in :class:`OnnxModels`.
 
 The sessions themselves need only numpy and onnxruntime (torch is imported only to wrap tensors).
@@ -37,11 +37,12 @@ from cosy_lite.export.manifest import (
     OnnxModelError,
     parse_json_meta,
 )
-from cosy_lite.models.detection_masks import binary_masks
-from cosy_lite.models.flow_pose_solver import FLOW_STRIDE
+from cosy_lite.nets.detection_masks import binary_masks
+from cosy_lite.nets.flow_pose_solver import FLOW_STRIDE
 
 if TYPE_CHECKING:
-    from cosy_lite.model_files.loaders import PoseModel
+    from cosy_lite.nets.detector import LabelMap
+    from cosy_lite.weights.loaders import PoseModel
 
 PROVIDERS = ("CPUExecutionProvider",)
 POSE_OUTPUTS = 9
@@ -203,9 +204,9 @@ class OnnxDetector:
         self._table = np.asarray([0, *self.obj_ids], dtype=np.int64)
 
     @property
-    def label_map(self) -> Any:
-        """The :class:`~cosy_lite.models.detector.LabelMap` of the export (imports torchvision)."""
-        from cosy_lite.models.detector import LabelMap
+    def label_map(self) -> LabelMap:
+        """The :class:`~cosy_lite.nets.detector.LabelMap` of the export (imports torchvision)."""
+        from cosy_lite.nets.detector import LabelMap
 
         return LabelMap(tuple(self.obj_ids))
 
@@ -238,7 +239,7 @@ class OnnxDetector:
 
 
 # precision -> suffix of the manifest entry names of the pose networks
-ONNX_PRECISIONS: dict[str, str] = {"fp32": "", "int8": ".int8"}
+ONNX_FILE_SUFFIXES: dict[str, str] = {"fp32": "", "int8": ".int8"}
 
 
 @dataclass
@@ -255,7 +256,7 @@ class OnnxModels:
 def load_onnx_models(root: str | Path, threads: int | None = None, precision: str = "fp32",
                      detector: bool = True, spinning: bool = False) -> OnnxModels:
     """The networks of the export folder ``root`` (``cosy-lite export --out root``), as the
-    :class:`~cosy_lite.model_files.loaders.PoseModel` the predictor takes (``net``: an
+    :class:`~cosy_lite.weights.loaders.PoseModel` the predictor takes (``net``: an
     :class:`OnnxPoseNet`) and an :class:`OnnxDetector`.
 
     Args:
@@ -266,14 +267,14 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
     or replaced, not loadable, or its metadata not matching the manifest (kind, obj_ids, crop size,
     6 input channels); no pose model at all.
     """
-    from cosy_lite.model_files.loaders import PoseModel  # torch behind it: not needed by the sessions
+    from cosy_lite.weights.loaders import PoseModel  # torch behind it: not needed by the sessions
 
-    if precision not in ONNX_PRECISIONS:
-        raise ValueError(f"precision must be one of {sorted(ONNX_PRECISIONS)} for ONNX models, got {precision!r}")
+    if precision not in ONNX_FILE_SUFFIXES:
+        raise ValueError(f"precision must be one of {sorted(ONNX_FILE_SUFFIXES)} for ONNX models, got {precision!r}")
     manifest = Manifest.read(root)
     pose: dict[str, PoseModel | None] = {}
     for role in POSE_KINDS:
-        name = role + ONNX_PRECISIONS[precision]
+        name = role + ONNX_FILE_SUFFIXES[precision]
         if manifest.entry(name) is None:
             if manifest.entry(role) is not None:  # fp32 exported, the asked precision not
                 raise OnnxModelError(manifest.path, f"models.{name}", f"not exported (found models.{role} only): "

@@ -12,10 +12,13 @@ import copy
 import time
 from collections import defaultdict
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
 from torch import Tensor, nn
+
+if TYPE_CHECKING:
+    from cosy_lite.render.renderer import Renderer
 
 
 class Clock:
@@ -43,7 +46,7 @@ class Clock:
 class TimedRenderer:
     """A renderer whose ``render`` / ``render_tensors`` calls are timed under "render"."""
 
-    def __init__(self, renderer: Any, clock: Clock):
+    def __init__(self, renderer: Renderer, clock: Clock):
         self.renderer, self.clock = renderer, clock
 
     def render(self, *args: Any, **kwargs: Any):
@@ -56,7 +59,7 @@ class TimedRenderer:
 
 
 # name -> autocast dtype of the pose networks' forward pass (None: full fp32)
-PRECISIONS: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
+AUTOCAST_DTYPES: dict[str, torch.dtype | None] = {"fp32": None, "bf16": torch.bfloat16}
 
 
 def timed_net(net: nn.Module | Callable[[Tensor], Tensor], clock: Clock, channels_last: bool, precision: str):
@@ -68,7 +71,7 @@ def timed_net(net: nn.Module | Callable[[Tensor], Tensor], clock: Clock, channel
                 return net(x).float()
 
         return run_plain
-    dtype = PRECISIONS[precision]
+    dtype = AUTOCAST_DTYPES[precision]
     memory_format = torch.channels_last if channels_last else torch.contiguous_format
 
     def run(x: Tensor) -> Tensor:
@@ -106,6 +109,3 @@ def flush_denormals() -> Iterator[None]:
         torch.set_flush_denormal(False)
 
 
-def default_device(name: str | None) -> torch.device:
-    """``name`` as a device; None: the GPU when there is one, else the CPU (the commands' default)."""
-    return torch.device(name if name is not None else ("cuda" if torch.cuda.is_available() else "cpu"))

@@ -1,1 +1,0 @@
-"""Networks: backbones, the pose network (tensor in, tensor out), the detector, losses."""
