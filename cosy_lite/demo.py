@@ -233,6 +233,7 @@ def prepare_dataset(cfg: DemoConfig) -> Path:
     """Generate what is missing (the test split; ``train_pbr``: all of it when training from scratch, else
     :attr:`DemoConfig.short_train_images` images, enough for the short runs) and validate the dataset."""
     from cosy_lite.config import packaged_config
+    from cosy_lite.synth.ownership import recorded_meshes
 
     root = cfg.data_root / cfg.dataset
     synth_cfg = packaged_config("synth", f"{cfg.dataset}.yaml")
@@ -242,7 +243,9 @@ def prepare_dataset(cfg: DemoConfig) -> Path:
     generate = _cli("generate", "--out", str(root), "--workers", "2", *extra)
     has_test = (root / "test_targets_bop19.json").is_file()
     n_train = _train_images(root)
-    if cfg.reference is None and not (has_test and n_train >= _full_train_images(cfg, synth_cfg)):
+    if recorded_meshes(root) is not None:
+        _check_your_objects(root, has_test, n_train)  # generated from your meshes: used as it is
+    elif cfg.reference is None and not (has_test and n_train >= _full_train_images(cfg, synth_cfg)):
         _run(generate + ([f"train.n_images={cfg.short_train_images}"] if cfg.quick else []), "generate the dataset")
     elif not has_test or not n_train:
         splits = (["test"] if not has_test else []) + (["train_pbr"] if not n_train else [])
@@ -256,6 +259,19 @@ def prepare_dataset(cfg: DemoConfig) -> Path:
             _run(_cli(command, str(root), *args, "--out", str(png)),
                  f"{command}: GT contours over the data ({png.name})")
     return root
+
+
+def _check_your_objects(root: Path, has_test: bool, n_train: int) -> None:
+    """A dataset of your meshes (``generate --meshes``) is never regenerated with the library's objects:
+    the demo trains and infers on what is there, or says what is missing and the command that adds it."""
+    from cosy_lite.synth.ownership import meshes_command, recorded_meshes
+
+    missing = (["test"] if not has_test else []) + (["train_pbr"] if not n_train else [])
+    if missing:
+        command = meshes_command(root, recorded_meshes(root) or {})
+        raise SystemExit(f"demo: {root} holds your meshes (models_sources.json) and has no {' and no '.join(missing)} "
+                         f"split; add it with its own meshes, then run the demo again:\n  {command} --splits {' '.join(missing)}")
+    print(f"demo: {root}: your meshes, {n_train} train_pbr images and the test split: used as they are", flush=True)
 
 
 def short_runs(cfg: DemoConfig) -> Path:

@@ -21,12 +21,13 @@ import numpy as np
 
 from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError
+from cosy_lite.synth.ownership import MESH_SOURCES
 
 MESH_EXTS = (".ply", ".obj", ".gltf", ".glb", ".stl", ".off")
 UNITS = {"mm": io.MM, "m": 1.0}  # metres per file unit
 MIN_DIAMETER_M = 0.005
 MAX_DIAMETER_M = 0.6  # the drop box is 0.7 m wide (LayoutConfig.wall_half_size = 0.35)
-SOURCES_FILE = "models_sources.json"
+SOURCES_FILE = MESH_SOURCES  # in out_root: obj_id -> the mesh file and unit it came from
 _BOP_NAME = re.compile(r"obj_(\d{6})$")
 
 

@@ -210,16 +210,21 @@ def generate(cfg: SynthConfig, root: str | Path, splits: tuple[str, ...] = ("tra
     from tqdm import tqdm
 
     from cosy_lite.synth.objects import write_bop_models
+    from cosy_lite.synth.ownership import check_can_write
 
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
     if cfg.models_dir:
         from dataclasses import replace
 
-        from cosy_lite.synth.custom_objects import write_custom_models
+        from cosy_lite.synth.custom_objects import find_meshes, write_custom_models
 
+        sources = {o: (str(p.resolve()), cfg.models_units) for o, p in find_meshes(cfg.models_dir).items()}
+        check_can_write(root, sources)  # never replaces a mesh of a folder made from other objects
+        root.mkdir(parents=True, exist_ok=True)
         cfg = replace(cfg, obj_ids=sorted(write_custom_models(cfg.models_dir, cfg.models_units, root)))
     else:
+        check_can_write(root, None, list(cfg.obj_ids))
+        root.mkdir(parents=True, exist_ok=True)
         write_bop_models(cfg.obj_ids, root)
     write_camera_json(root, cfg)
 

@@ -25,6 +25,7 @@ import trimesh
 
 from cosy_lite.bop import io
 from cosy_lite.bop.io import ModelInfo
+from cosy_lite.synth.ownership import LIBRARY_MANIFEST
 
 RGB = tuple[float, float, float]
 Range = tuple[float, float]
@@ -35,7 +36,7 @@ GLTF_TO_YCB = np.array([[1.0, 0, 0, 0], [0, 0, -1.0, 0], [0, 1.0, 0, 0], [0, 0, 
 NOISE_WAVELENGTH = 0.08  # m, of the low-frequency brightness noise
 SYMMETRY_TEXTURE_SIZE = 64  # texture downsampled (box filter) to this before sampling colours for symmetries
 MODELS_FORMAT_VERSION = 1  # bump when the written files change for the same inputs (invalidates resume)
-MANIFEST_NAME = ".cosy_lite_models.json"  # in out_root: per object, the input key and the written files' hashes
+MANIFEST_NAME = LIBRARY_MANIFEST  # in out_root: per object, the input key and the written files' hashes
 
 
 # ----------------------------------------------------------------------------- the table
