@@ -150,3 +150,17 @@ def test_check_dataset_reports_an_old_folder_name(tmp_path: Path):
         problems = check_dataset(root)
     named = [p for p in problems if p.field == "name"]
     assert len(named) == 1 and named[0].severity == "warning" and "mv " in named[0].message
+
+
+def test_a_missing_dataset_says_where_names_are_looked_up(tmp_path, monkeypatch, capsys):
+    """``train.py --dataset ycbv`` without the data: the error names the folder, COSY_LITE_DATA and
+    --data-root (it named only the folder)."""
+    import train
+
+    monkeypatch.setenv("COSY_LITE_DATA", str(tmp_path))
+    assert train.main(["--dataset", "ycbv", "--model", "refiner"]) == 2
+    err = capsys.readouterr().err
+    assert f"dataset folder {tmp_path / 'ycbv'} not found" in err
+    assert "COSY_LITE_DATA" in err and "--data-root" in err and str(tmp_path) in err
+    with pytest.raises(BopFormatError, match="COSY_LITE_DATA"):
+        BopDataset(tmp_path / "ycbv")

@@ -275,6 +275,23 @@ def test_eval_command_writes_json_and_png(root: Path, capsys):
     assert (out / "recall_curves.png").stat().st_size > 1000
 
 
+def test_eval_command_reports_images_without_estimates(root: Path, capsys):
+    """Images whose targets got no estimate count as missed, and the report says which (it said nothing)."""
+    from cosy_lite.cli import main
+
+    ests = _gt_estimates()
+    first = min(e.im_id for e in ests)
+    csv = root.parent / "gt_tiny-test.csv"
+    write_results_csv(csv, [e for e in ests if e.im_id != first])
+    out = root.parent / "out"
+    assert main(["eval", "--dataset", str(root), "--results", str(csv), "--out", str(out), "--no-progress"]) == 0
+    n_images = len(GT)
+    assert f"1 of {n_images} target images have no estimate (their targets count as missed): scene 0 image {first}" \
+        in capsys.readouterr().out
+    data = json.loads((out / "scores.json").read_text())
+    assert data["images_without_estimates"] == [[0, first]] and data["n_images"] == n_images
+
+
 def test_eval_command_stops_on_invalid_csv(root: Path, capsys):
     from cosy_lite.eval import command
 

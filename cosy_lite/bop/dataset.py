@@ -54,7 +54,9 @@ class BopDataset:
         self.root = Path(self.root)
         self.name = dataset_name_of(self.root, self.name)
         if not self.root.is_dir():
-            raise BopFormatError(self.root, "", "dataset folder not found")
+            from cosy_lite.bop.folders import where_datasets_are
+
+            raise BopFormatError(self.root, "", f"dataset folder not found ({where_datasets_are()})")
 
     # ------------------------------------------------------------------ static facts
     @cached_property

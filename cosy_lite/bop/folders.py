@@ -18,6 +18,12 @@ def default_data_root() -> Path:
     return Path(os.environ.get("COSY_LITE_DATA", "data"))
 
 
+def where_datasets_are() -> str:
+    """How a dataset name becomes a folder, for "not found" errors."""
+    return (f"a dataset NAME is the folder $COSY_LITE_DATA/NAME (COSY_LITE_DATA now: {default_data_root()}); "
+            "set COSY_LITE_DATA or --data-root DIR, or give the dataset folder's path")
+
+
 def dataset_folder(dataset: str | Path, data_root: Path | None = None) -> Path:
     """The folder of a ``--dataset`` value: a folder (or a path) as given, else ``DATA_ROOT/NAME``.
 

@@ -58,7 +58,13 @@ def format_table(result) -> str:
     head = (f"{'object':>8} {'targets':>8} {'ests':>6} {'AR':>7} {'AR_VSD':>7} {'AR_MSSD':>7} {'AR_MSPD':>7} "
             f"{'AUC_ADD(-S)':>11} {'AUC_ADI':>7}")
     lines = [f"{result.dataset} / {result.split}: {result.n_estimates_evaluated} of {result.n_estimates_in_file} "
-             f"estimates evaluated, {s.n_targets} targets, {result.seconds:.1f} s", head, "-" * len(head)]
+             f"estimates evaluated, {s.n_targets} targets, {result.seconds:.1f} s"]
+    empty = result.images_without_estimates
+    if empty:  # they count, with recall 0: say so
+        shown = ", ".join(f"scene {sc} image {im}" for sc, im in empty[:5]) + (", ..." if len(empty) > 5 else "")
+        lines.append(f"{len(empty)} of {result.n_images} target images have no estimate (their targets count as "
+                     f"missed): {shown}")
+    lines += [head, "-" * len(head)]
     rows = [(str(o), x) for o, x in s.per_object.items()] + [("all", s)]
 
     def auc(v: float | None, width: int) -> str:  # "-": not computed (cosy-lite eval without --auc)

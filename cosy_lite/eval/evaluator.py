@@ -55,6 +55,19 @@ class EvalResult:
     targets: list[TargetErrors]
     seconds: float  # wall time of the evaluation
 
+    @property
+    def images_without_estimates(self) -> list[tuple[int, int]]:
+        """(scene_id, im_id) of the target images with no estimate of any target object."""
+        has: dict[tuple[int, int], bool] = {}
+        for te in self.targets:
+            key = (te.scene_id, te.im_id)
+            has[key] = has.get(key, False) or len(te.scores) > 0
+        return sorted(k for k, v in has.items() if not v)
+
+    @property
+    def n_images(self) -> int:
+        return len({(te.scene_id, te.im_id) for te in self.targets})
+
     def to_dict(self) -> dict:
         """JSON-ready dict with every number (thresholds, recalls, AR, per-object scores)."""
         from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_TAUS, VSD_THETAS
@@ -71,7 +84,8 @@ class EvalResult:
         return {
             "dataset": self.dataset, "split": self.split, "results": self.results_path,
             "n_estimates_in_file": self.n_estimates_in_file, "n_estimates_evaluated": self.n_estimates_evaluated,
-            "n_targets": s.n_targets, "seconds": self.seconds,
+            "n_targets": s.n_targets, "seconds": self.seconds, "n_images": self.n_images,
+            "images_without_estimates": [list(k) for k in self.images_without_estimates],
             "thresholds": {
                 "vsd_delta_m": self.vsd_delta, "vsd_taus_x_diameter": VSD_TAUS.tolist(),
                 "vsd_thetas": VSD_THETAS.tolist(), "mssd_x_diameter": MSSD_THRESHOLDS.tolist(),

@@ -95,7 +95,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load the config, find (or generate) the dataset, validate it, train."""
-    from cosy_lite.bop.folders import dataset_folder
+    from cosy_lite.bop.folders import dataset_folder, where_datasets_are
     from cosy_lite.bop.params import dataset_name_of
     from cosy_lite.bop.validate import check_dataset, report
 
@@ -104,8 +104,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_train_config(args, name)  # a bad config fails before any data work
     if not root.is_dir():
         if args.dataset not in SYNTH_CONFIGS:
-            print(f"error: dataset folder {root} not found (BOP datasets cannot be downloaded here; "
-                  f"synthetic ones are generated: {sorted(SYNTH_CONFIGS)})", file=sys.stderr)
+            print(f"error: dataset folder {root} not found ({where_datasets_are()}; BOP datasets are not downloaded "
+                  f"here; synthetic ones are generated: {sorted(SYNTH_CONFIGS)})", file=sys.stderr)
             return 2
         from cosy_lite.synth.generator import SynthConfig, generate
 
