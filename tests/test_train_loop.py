@@ -23,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _run(out: Path, steps: int, resume: bool = False, batch: int = 8, noise: float = 0.01, schedule: str = "step",
          floor: float = 0.05, task: ToyTask | None = None, **loop_kw):
-    loop = LoopConfig(steps=steps, batch_size=batch, num_workers=0, log_every=5, val_every=10,
-                      checkpoint_every=5, device="cpu", **loop_kw)
+    loop = LoopConfig(**{"steps": steps, "batch_size": batch, "num_workers": 0, "log_every": 5, "val_every": 10,
+                         "checkpoint_every": 5, "device": "cpu", **loop_kw})
     optim = OptimConfig(lr=3e-2, warmup_steps=5, schedule=schedule, cosine_floor=floor)
     cfg = {"loop": dataclasses.asdict(loop), "optim": dataclasses.asdict(optim)}
     return train(task or ToyTask(noise=noise), loop, optim, out, config=cfg, resume=resume, progress=False)
@@ -158,6 +158,29 @@ def test_time_budget_counts_the_whole_run(tmp_path, capsys):
     assert more.steps_done > first.steps_done
 
 
+class _SlowValidationToyTask(ToyTask):
+    """The toy task with a validation of ``seconds``."""
+
+    def __init__(self, seconds: float):
+        super().__init__(noise=0.01)
+        self.seconds = seconds
+
+    def validate(self, model, device):
+        import time
+
+        time.sleep(self.seconds)
+        return super().validate(model, device)
+
+
+def test_the_final_validation_fits_inside_the_time_budget(tmp_path):
+    """An 8 s budget with a 1.5 s validation: training stops early enough for the final validation and
+    checkpoint (they ran after the budget was spent: 9.5 s and more)."""
+    s = _run(tmp_path, steps=10_000_000, max_minutes=8 / 60, val_at_start=True, val_every=10_000_000,
+             checkpoint_every=100, task=_SlowValidationToyTask(1.5))
+    assert s.steps_done < 10_000_000 and "mae" in s.last_val  # stopped by the budget, validated at the end
+    assert 6.0 < s.seconds <= 8.0 + 1.0, s.seconds  # (a loaded machine saves a checkpoint in up to ~0.5 s)
+
+
 def test_bad_checkpoints_name_the_file_and_problem(tmp_path):
     with pytest.raises(CheckpointError, match="not found"):
         load_checkpoint(tmp_path / "nope.pt")
@@ -188,3 +211,16 @@ def test_ddp_two_gloo_processes_match_one_process_with_the_global_batch(tmp_path
     single = load_checkpoint(tmp_path / "single" / "checkpoint.pt").model
     for k in single:
         torch.testing.assert_close(ck.model[k], single[k], rtol=1e-5, atol=1e-6)
+
+
+def test_the_progress_bar_follows_the_time_budget():
+    """With loop.max_minutes the bar counts the budget's seconds (its ETA is the budget's); it counted
+    loop.steps ("42/100000 [00:33<58:32:07]" for a run of minutes)."""
+    from cosy_lite.train.loop import _progress_bar
+    from cosy_lite.train.run_state import RunState
+
+    run = RunState(step=40, elapsed_before=30.0)
+    timed = _progress_bar("refiner", LoopConfig(steps=100_000, max_minutes=2.0), run, show=False)
+    assert (timed.total, timed.n) == (120.0, 30.0)  # seconds of the budget, those trained before
+    by_steps = _progress_bar("refiner", LoopConfig(steps=500, max_minutes=0.0), run, show=False)
+    assert (by_steps.total, by_steps.n) == (500, 40)

@@ -161,11 +161,26 @@ def _validate(task: TrainTask, model: torch.nn.Module, device: torch.device) -> 
     return metrics
 
 
-def _budget_done(run: RunState, loop: LoopConfig, dist: DistInfo) -> tuple[bool, float]:
-    """(out of time, the fraction of the run's budget done) after ``run.step`` steps; the processes agree
-    on both (their clocks differ slightly)."""
+def _progress_bar(kind: str, loop: LoopConfig, run: RunState, show: bool) -> Any:
+    """The bar of a run: over its time budget in seconds when ``loop.max_minutes`` is set (the ETA is the
+    budget's), else over ``loop.steps``. Shown only on a terminal."""
+    from tqdm import tqdm
+
+    disable = None if show else True  # None: only on a terminal
+    if loop.max_minutes > 0:
+        return tqdm(total=60 * loop.max_minutes, initial=min(run.elapsed_before, 60 * loop.max_minutes),
+                    desc=f"train {kind} ({loop.max_minutes:g} min)", unit="s", disable=disable, dynamic_ncols=True,
+                    bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]")
+    return tqdm(total=loop.steps, initial=run.step, desc=f"train {kind}", unit="step", disable=disable,
+                dynamic_ncols=True)
+
+
+def _budget_done(run: RunState, loop: LoopConfig, dist: DistInfo, reserve: float = 0.0) -> tuple[bool, float]:
+    """(out of time, the fraction of the run's budget done) after ``run.step`` steps; ``reserve``: seconds
+    kept for the final validation and checkpoint (the last ones' durations), so that they end inside it. The
+    processes agree on both (their clocks differ slightly)."""
     elapsed = run.elapsed()
-    out_of_time = loop.max_minutes > 0 and elapsed > 60 * loop.max_minutes
+    out_of_time = loop.max_minutes > 0 and elapsed + reserve > 60 * loop.max_minutes
     done = elapsed / (60 * loop.max_minutes) if loop.max_minutes > 0 else run.step / loop.steps
     out_of_time_mean, done = all_reduce_mean(torch.tensor([float(out_of_time), done]), dist).tolist()
     return out_of_time_mean > 0, done
@@ -221,7 +236,6 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     weights file whose network the run starts from instead of its fresh initialisation
     (:func:`~cosy_lite.train.init_weights.load_initial_weights`; a resumed run keeps its own record of it).
     """
-    from tqdm import tqdm
 
     check_train_config(loop, optim)
     out_dir = Path(out_dir)
@@ -249,11 +263,13 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
 
     last_losses: dict[str, float] = {}
     last_val: dict[str, float] = {}
+    val_seconds = save_seconds = 0.0  # the last validation's and checkpoint's: kept free at the end of a budget
     if loop.val_at_start and loop.val_every > 0 and run.step == 0 and dist.is_main:
+        t_val = time.perf_counter()
         log.validation(0, first_val := _validate(task, train_model, device))
+        val_seconds = time.perf_counter() - t_val
         print("step 0: " + ", ".join(f"{k} {v:.4g}" for k, v in first_val.items()), flush=True)
-    bar = tqdm(total=loop.steps, initial=run.step, desc=f"train {task.kind}", unit="step",
-               disable=None if (progress and dist.is_main) else True, dynamic_ncols=True)  # None: only on a terminal
+    bar = _progress_bar(task.kind, loop, run, progress and dist.is_main)
     run.t_start = t_interval = time.perf_counter()
     train_model.train()
     if loop.max_minutes > 0 and run.elapsed_before >= 60 * loop.max_minutes:
@@ -263,23 +279,27 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     for batch in loader:
         losses = _step(task, train_model, model, optimizer, batch, run, loop, optim, dist, out_dir)
         run.step += 1
-        stop, run.done = _budget_done(run, loop, dist)
+        stop, run.done = _budget_done(run, loop, dist, (val_seconds if loop.val_every > 0 else 0.0) + save_seconds)
         run.items += loop.batch_size * dist.world_size
         log.add(losses, loop.batch_size * dist.world_size)
-        bar.update(1)
+        bar.update(min(run.elapsed(), bar.total) - bar.n if loop.max_minutes > 0 else 1)
         if run.step % loop.log_every == 0 or run.step == loop.steps:
             next_lr = learning_rate(run.step, run.done, optim)  # the rate of the coming step
             last_losses, rate = log.close_interval(run.step, next_lr, run.elapsed(), time.perf_counter() - t_interval)
-            bar.set_postfix(loss=f"{last_losses['total']:.4g}", items_s=f"{rate:.1f}")
+            bar.set_postfix(step=run.step, loss=f"{last_losses['total']:.4g}", items_s=f"{rate:.1f}")
             t_interval = time.perf_counter()
         if loop.val_every > 0 and (run.step % loop.val_every == 0 or run.step == loop.steps or stop) and dist.is_main:
+            t_val = time.perf_counter()
             last_val = _validate(task, model, device)
+            val_seconds = time.perf_counter() - t_val
             log.validation(run.step, last_val)
             bar.write(f"step {run.step}: " + ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
         if (run.step % loop.checkpoint_every == 0 or run.step == loop.steps or stop) and dist.is_main:
+            t_save = time.perf_counter()
             save_run(ckpt_path, task.kind, model, optimizer, config, run, task.checkpoint_meta(), log.state(),
                      dist.world_size)
             plot_losses(log_path, out_dir / "loss.png")
+            save_seconds = time.perf_counter() - t_save
         if stop:
             bar.write(f"stopping at step {run.step}: time budget of {loop.max_minutes} min reached (checkpoint saved)")
             break
