@@ -316,16 +316,19 @@ def test_a_graph_with_three_input_channels_is_refused(tmp_path):
 # ----------------------------------------------------------------------------- the pipeline
 
 
-def test_objects_not_in_the_dataset_are_refused(tiny_synth_root, tmp_path):
+def test_the_objects_are_those_with_a_mesh(tiny_synth_root, tmp_path):
+    """An export of objects 1 and 30 on a dataset with 1 (not 30) estimates 1; with none of its objects
+    it is refused, naming the manifest, the field and the models file."""
     from cosy_lite.export.onnx_export import export_models
     from cosy_lite.inference.predictor import Predictor
 
-    ckpt = _save_pose_ckpt(tmp_path / "coarse.pt", "coarse", 1, obj_ids=[1, 30])
-    export_models(tmp_path / "models", coarse=ckpt)
+    export_models(tmp_path / "some", coarse=_save_pose_ckpt(tmp_path / "c1.pt", "coarse", 1, obj_ids=[1, 30]))
+    assert Predictor.from_onnx(tmp_path / "some", dataset=tiny_synth_root).obj_ids == [1]
+    export_models(tmp_path / "none", coarse=_save_pose_ckpt(tmp_path / "c2.pt", "coarse", 1, obj_ids=[30, 31]))
     with pytest.raises(OnnxModelError) as e:
-        Predictor.from_onnx(tmp_path / "models", dataset=tiny_synth_root)
+        Predictor.from_onnx(tmp_path / "none", dataset=tiny_synth_root)
     assert e.value.path.endswith("manifest.json") and e.value.field == "models.coarse.obj_ids"
-    assert "[30]" in str(e.value) and "models_info.json" in str(e.value)
+    assert "[30, 31]" in str(e.value) and "models_info.json" in str(e.value)
 
 
 def test_onnx_backend_gives_the_torch_poses(tiny_synth_root, export, tmp_path, capsys):

@@ -117,3 +117,35 @@ def test_an_export_carries_its_settings_and_a_bad_one_is_named(tmp_path):
     with pytest.raises(ConfigError) as e:
         inference_config(Manifest.read(tmp_path).inference, manifest.path)
     assert e.value.where.startswith(str(manifest.path)) and e.value.field == "n_refiner_iterations"
+
+
+def test_the_estimated_objects_are_those_with_a_mesh(tmp_path):
+    """Without --objects, a folder of meshes of some of the networks' objects estimates those (a
+    one-object folder failed with 'no models of obj_ids [1, 3, ...]' unless --objects was given)."""
+    from cosy_lite.inference.object_meshes import SetupError, estimated_obj_ids
+
+    info = tmp_path / "models_info.json"
+    assert estimated_obj_ids(None, range(1, 22), [2], info) == [2]
+    assert estimated_obj_ids([5, 2], range(1, 22), [2, 5, 30], info) == [2, 5]
+    with pytest.raises(SetupError, match=r"models_info.json: no models of obj_ids \[7\]"):
+        estimated_obj_ids([7], range(1, 22), [2], info)
+    with pytest.raises(SetupError, match=r"no models of the networks' obj_ids \[1, 2\] \(it has \[30\]\)"):
+        estimated_obj_ids(None, [1, 2], [30], info)
+
+
+def test_no_refiner_iterations_alone_works_over_a_set_with_candidates():
+    """``--n-refiner-iters 0`` over settings with 5 candidates: the best template is the start (it
+    stopped with "n_candidates: 5 needs n_refiner_iterations >= 1" unless --candidates 1 was added)."""
+    import argparse
+
+    from cosy_lite.inference.settings import add_arguments, config_from_arguments
+
+    ap = argparse.ArgumentParser()
+    add_arguments(ap, "")
+    base = {"start": "templates", "n_candidates": 5, "n_refiner_iterations": 4}
+    cfg = config_from_arguments(ap.parse_args(["--n-refiner-iters", "0"]), base, "pipeline.json")
+    assert (cfg.n_refiner_iterations, cfg.n_candidates) == (0, 1)
+    cfg = config_from_arguments(ap.parse_args(["--n-refiner-iters", "2"]), base, "pipeline.json")
+    assert (cfg.n_refiner_iterations, cfg.n_candidates) == (2, 5)
+    with pytest.raises(Exception, match="needs n_refiner_iterations >= 1"):  # asked for both: say why not
+        config_from_arguments(ap.parse_args(["--n-refiner-iters", "0", "--candidates", "5"]), base, "pipeline.json")

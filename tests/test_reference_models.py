@@ -190,8 +190,8 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
     assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]
     assert Predictor.from_pretrained(NAME, dataset=tiny_synth_root, obj_ids=[1, 5]).detector is not None
-    with pytest.raises(SetupError, match="no models of obj_ids"):  # the tiny dataset has 4 of the 21 objects
-        Predictor.from_pretrained(NAME, dataset=tiny_synth_root)
+    with pytest.raises(SetupError, match=r"no models of obj_ids \[99\]"):  # the tiny dataset has 4 of the 21 objects
+        Predictor.from_pretrained(NAME, dataset=tiny_synth_root, obj_ids=[1, 99])
     with pytest.raises(SetupError, match="coarse"):  # the set has no coarse network
         Predictor.from_pretrained(NAME, dataset=tiny_synth_root, config=InferenceConfig(start="coarse"), obj_ids=[1])
 

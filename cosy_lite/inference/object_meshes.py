@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 from cosy_lite.bop import io
 from cosy_lite.errors import BopFormatError, CosyLiteError
@@ -58,6 +58,24 @@ class ObjectMeshes:
     def load_model(self, obj_id: int):
         """trimesh.Trimesh in metres."""
         return io.load_model(self.models_dir / f"obj_{int(obj_id):06d}.ply")
+
+
+def estimated_obj_ids(requested: Sequence[int] | None, network_ids: Sequence[int], mesh_ids: Sequence[int],
+                      meshes_file: Path) -> list[int]:
+    """The objects a predictor estimates: ``requested`` (each must have a mesh), else those of the
+    networks that have a mesh (a folder of one object estimates that one). SetupError naming
+    ``meshes_file`` when none is left or a requested one has no mesh."""
+    if requested:
+        ids = sorted(int(i) for i in requested)
+        unknown = sorted(set(ids) - set(mesh_ids))
+        if unknown:
+            raise SetupError(f"{meshes_file}: no models of obj_ids {unknown} (it has {sorted(mesh_ids)})")
+        return ids
+    ids = sorted(set(int(i) for i in network_ids) & set(int(i) for i in mesh_ids))
+    if not ids:
+        raise SetupError(f"{meshes_file}: no models of the networks' obj_ids {sorted(network_ids)} "
+                         f"(it has {sorted(mesh_ids)})")
+    return ids
 
 
 def object_meshes(models_dir: str | Path | None, dataset: BopDataset | str | Path | None) -> ObjectMeshes:

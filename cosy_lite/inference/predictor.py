@@ -41,7 +41,14 @@ from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_box
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
 from cosy_lite.inference.detection_filter import DetectionFilter
-from cosy_lite.inference.object_meshes import SetupError, object_meshes, objects_and_renderer, render_shading, start_templates
+from cosy_lite.inference.object_meshes import (
+    SetupError,
+    estimated_obj_ids,
+    object_meshes,
+    objects_and_renderer,
+    render_shading,
+    start_templates,
+)
 from cosy_lite.inference.pose_estimates import TIMING_KEYS, PoseEstimates
 from cosy_lite.inference.settings import InferenceConfig, inference_config, with_refiner
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
@@ -206,10 +213,8 @@ class Predictor:
         coarse_model = None if coarse is None else load_pose_model(coarse, "coarse", device)
         refiner_model = None if refiner is None else load_pose_model(refiner, "refiner", device)
         first = coarse_model or refiner_model
-        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
-        unknown = sorted(set(ids) - set(meshes.obj_ids))
-        if unknown:
-            raise SetupError(f"{meshes.models_dir / 'models_info.json'}: no models of obj_ids {unknown}")
+        ids = estimated_obj_ids(obj_ids, first.obj_ids, meshes.obj_ids,  # type: ignore[union-attr]
+                                meshes.models_dir / "models_info.json")
         objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
@@ -285,12 +290,12 @@ class Predictor:
                                  f"(it has {sorted(onnx.manifest.models)}); export one or use start='templates'")
         first_name = role + ("" if precision == "fp32" else f".{precision}")
         first = onnx.coarse if onnx.coarse is not None else onnx.refiner
-        ids = sorted(int(i) for i in obj_ids) if obj_ids else list(first.obj_ids)  # type: ignore[union-attr]
-        unknown = sorted(set(ids) - set(meshes.obj_ids))
-        if unknown:
-            field_ = "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids"
-            raise OnnxModelError(onnx.manifest.path, field_, f"obj_ids {unknown} have no model in "
-                                 f"{meshes.models_dir / 'models_info.json'} (it has {meshes.obj_ids})")
+        try:
+            ids = estimated_obj_ids(obj_ids, first.obj_ids, meshes.obj_ids,  # type: ignore[union-attr]
+                                    meshes.models_dir / "models_info.json")
+        except SetupError as e:
+            raise OnnxModelError(onnx.manifest.path, "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids",
+                                 str(e)) from None
         config = dataclasses.replace(with_refiner(config, onnx.refiner is not None), precision="fp32")
         objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(onnx.coarse, onnx.refiner))

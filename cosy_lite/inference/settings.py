@@ -134,11 +134,14 @@ def config_from_arguments(args: Any, base: Mapping[str, Any] | None = None,
     """The settings of a command line (:func:`add_arguments`) on top of ``base`` (the settings of a
     reference set's ``pipeline.json`` or an export's manifest, read from ``base_source``). A
     ``--start`` other than the base's resets the candidates to 1 unless ``--candidates`` is given:
-    a set's candidate count belongs to its own start."""
+    a set's candidate count belongs to its own start; so does ``--n-refiner-iters 0`` (no refiner
+    iteration ranks candidates)."""
     flags = [f"{key}={getattr(args, attr)}" for attr, key in FLAG_KEYS.items() if getattr(args, attr, None) is not None]
     if (base and getattr(args, "candidates", None) is None and getattr(args, "start", None) is not None
             and args.start != base.get("start", InferenceConfig.start)):
         flags.append("n_candidates=1")
+    if getattr(args, "n_refiner_iters", None) == 0 and getattr(args, "candidates", None) is None:
+        flags.append("n_candidates=1")  # no refiner iteration ranks candidates: the best template is the start
     overrides = [*flags, *(f"icp_settings.{kv}" for kv in getattr(args, "icp_set", [])),
                  *getattr(args, "set_overrides", [])]
     return inference_config(base, base_source, getattr(args, "settings", None), overrides)
