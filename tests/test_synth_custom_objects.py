@@ -83,3 +83,45 @@ def test_bad_generate_arguments(meshes, tmp_path, capsys):
     empty.mkdir()
     assert main(["generate", "--meshes", str(empty), "--units", "mm", "--out", str(tmp_path / "none")]) == 2
     assert "no mesh files" in capsys.readouterr().err
+
+
+def _obj_with_uvs(path: Path, header: str = "") -> Path:
+    """A box written as OBJ with texture coordinates (as exporters write them) and ``header`` lines."""
+    box = trimesh.creation.box(extents=(50.0, 40.0, 30.0))
+    uv = np.random.default_rng(0).random((len(box.vertices), 2))
+    lines = [header, *("v %f %f %f" % tuple(v) for v in box.vertices), *("vt %f %f" % tuple(t) for t in uv),
+             *("f " + " ".join(f"{i + 1}/{i + 1}" for i in f) for f in box.faces)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_meshes_without_colour_get_one_of_their_own_and_missing_textures_one_warning(tmp_path):
+    """OBJ files with texture coordinates but no texture came out trimesh's placeholder grey
+    (100, 100, 100), all alike; a missing material or texture file is one warning naming it."""
+    import warnings
+
+    from cosy_lite.synth.custom_objects import _colours
+
+    plain = load_user_mesh(_obj_with_uvs(tmp_path / "a.obj"), "mm")
+    with pytest.warns(UserWarning, match=r"b.obj: .*nothere.mtl not found") as record:
+        missing = load_user_mesh(_obj_with_uvs(tmp_path / "b.obj", "mtllib nothere.mtl\nusemtl m"), "mm")
+    assert len(record) == 1
+    means = [_colours(m, i).mean(axis=0) for i, m in ((1, plain), (2, missing))]
+    for m in means:
+        assert np.abs(m - 100).max() > 20  # not the placeholder grey
+    assert np.abs(means[0] - means[1]).max() > 30  # two objects, two colours
+    (tmp_path / "red.mtl").write_text("newmtl m\nKd 0.8 0.2 0.2\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing is missing: no warning
+        red = load_user_mesh(_obj_with_uvs(tmp_path / "c.obj", "mtllib red.mtl\nusemtl m"), "mm")
+    assert np.allclose(_colours(red, 3).mean(axis=0), [204, 51, 51], atol=1)  # the material's colour
+
+
+def test_contours_stay_visible_on_an_object_of_their_colour():
+    from cosy_lite.vis.overlay import draw_contour
+
+    image = np.full((40, 40, 3), 255, np.uint8)  # a white object
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 10:30] = True
+    out = draw_contour(image, mask, (255, 255, 255))  # the GT colour
+    assert (out.sum(axis=2) < 384).sum() > 100  # its dark halo, either side of the outline

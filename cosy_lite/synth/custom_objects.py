@@ -14,7 +14,9 @@ colours, ``models_eval/``, ``models_info.json`` with diameters and discovered sy
 from __future__ import annotations
 
 import json
+import logging
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +30,7 @@ UNITS = {"mm": io.MM, "m": 1.0}  # metres per file unit
 MIN_DIAMETER_M = 0.005
 MAX_DIAMETER_M = 0.6  # the drop box is 0.7 m wide (LayoutConfig.wall_half_size = 0.35)
 SOURCES_FILE = MESH_SOURCES  # in out_root: obj_id -> the mesh file and unit it came from
+DEFAULT_GREY = (102, 102, 102)  # trimesh's colour of a material nobody set
 _BOP_NAME = re.compile(r"obj_(\d{6})$")
 
 
@@ -53,10 +56,21 @@ def load_user_mesh(path: str | Path, units: str):
     path = Path(path)
     if units not in UNITS:
         raise BopFormatError(path, "--units", f"{units!r}: expected one of {sorted(UNITS)}")
+    missing = missing_texture_files(path)
+    if missing:
+        warnings.warn(f"{path}: {', '.join(str(m) for m in missing)} not found: the object is coloured without them",
+                      UserWarning, stacklevel=2)
+    trimesh_log = logging.getLogger("trimesh")
+    level = trimesh_log.level
+    trimesh_log.setLevel(logging.CRITICAL)  # its tracebacks for missing texture files: said once above instead
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types on bad files
         raise BopFormatError(path, "", f"cannot read the mesh ({type(e).__name__}: {e})") from None
+    finally:
+        trimesh_log.setLevel(level)
+    if missing or (path.suffix.lower() == ".obj" and not _obj_texture_files(path)):
+        _drop_placeholder_texture(mesh)
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0 or len(mesh.faces) == 0:
         raise BopFormatError(path, "face", io.NO_MESH)
     if not np.all(np.isfinite(mesh.vertices)):
@@ -74,6 +88,50 @@ def load_user_mesh(path: str | Path, units: str):
             f"diameter {d / UNITS[units]:.4g} {units} = {d:.4g} m is implausible: the generator takes objects of "
             f"{MIN_DIAMETER_M * 1000:.0f} mm to {MAX_DIAMETER_M:.1f} m{hint}"))
     return mesh
+
+
+def _obj_material_files(path: Path) -> list[Path]:
+    """The material (``mtllib``) files an OBJ names."""
+    out = []
+    for line in path.read_text(errors="replace").splitlines():
+        parts = line.split(maxsplit=1)
+        if len(parts) == 2 and parts[0] == "mtllib":
+            out.append(path.parent / parts[1].strip())
+    return out
+
+
+def _obj_texture_files(path: Path) -> list[Path]:
+    """The image files (``map_*``) the material files of an OBJ name (those that exist are read)."""
+    out = []
+    for mtl in _obj_material_files(path):
+        if mtl.is_file():
+            for line in mtl.read_text(errors="replace").splitlines():
+                parts = line.split()
+                if len(parts) > 1 and parts[0].lower().startswith("map_"):
+                    out.append(mtl.parent / parts[-1])
+    return out
+
+
+def missing_texture_files(path: Path) -> list[Path]:
+    """Material and texture files an OBJ names that do not exist (other formats: none)."""
+    if path.suffix.lower() != ".obj":
+        return []
+    return sorted({p for p in (*_obj_material_files(path), *_obj_texture_files(path)) if not p.is_file()})
+
+
+def _drop_placeholder_texture(mesh) -> None:
+    """An OBJ with texture coordinates but no (readable) texture image gets trimesh's 2x2 grey placeholder
+    image: sampled, every such object came out the same grey (100, 100, 100). Keep its material colour, if
+    any, as a uniform colour instead (else :func:`_colours` gives it a procedural colour of its own)."""
+    import trimesh
+
+    material = getattr(mesh.visual, "material", None)
+    colour = getattr(material, "diffuse", None) if isinstance(material, trimesh.visual.material.SimpleMaterial) else None
+    if colour is not None and tuple(np.asarray(colour)[:3]) != DEFAULT_GREY:
+        rgba = np.tile(np.asarray(colour, np.uint8), (len(mesh.vertices), 1))
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
+    else:
+        mesh.visual = trimesh.visual.ColorVisuals(mesh)
 
 
 def _colours(mesh, obj_id: int) -> np.ndarray:

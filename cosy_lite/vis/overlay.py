@@ -7,6 +7,8 @@ import colorsys
 import cv2
 import numpy as np
 
+HALO = (0, 0, 0)  # under every contour and label
+
 
 def object_colour(obj_id: int) -> tuple[int, int, int]:
     """A stable, distinct RGB colour per object id (golden-ratio hues)."""
@@ -23,8 +25,11 @@ def draw_mask(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int],
 
 
 def draw_contour(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int], thickness: int = 2) -> np.ndarray:
+    """The outline of ``mask`` in ``colour`` over a dark halo, so that it stays visible on any object
+    (a white outline on a white or grey object was invisible)."""
     out = image.copy()
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, HALO, thickness + 4, lineType=cv2.LINE_AA)
     cv2.drawContours(out, contours, -1, colour, thickness, lineType=cv2.LINE_AA)
     return out
 
@@ -32,7 +37,7 @@ def draw_contour(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, in
 def draw_label(image: np.ndarray, text: str, xy: tuple[int, int], colour: tuple[int, int, int]) -> np.ndarray:
     out = image.copy()
     x, y = int(np.clip(xy[0], 0, image.shape[1] - 1)), int(np.clip(xy[1], 12, image.shape[0] - 1))
-    cv2.putText(out, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(out, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, HALO, 3, cv2.LINE_AA)
     cv2.putText(out, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return out
 
