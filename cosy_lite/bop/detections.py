@@ -239,7 +239,7 @@ def _image_detections(path: Path, entries: list[tuple[int, _Entry]], with_masks:
             assert e.segmentation is not None  # _parse_entry rejects an entry with neither
             boxes.append(mask_util.toBbox(compressed_rle(e.segmentation)).tolist())
     masks = None
-    if with_masks:
+    if with_masks and any(e.segmentation is not None for _, e in entries):  # none has one: boxes only
         arrays = []
         for i, e in entries:
             if e.segmentation is None:
@@ -265,8 +265,9 @@ def read_detections_json(path: str | Path, valid_obj_ids: Iterable[int] | None =
     Args:
         path: the JSON file.
         valid_obj_ids: if given, any other ``category_id`` is an error.
-        with_masks: decode the RLE masks (every entry then needs ``segmentation``); off by
-            default because full-image masks of a whole test split take gigabytes.
+        with_masks: decode the RLE masks (every entry of an image then needs ``segmentation``, unless
+            none has one: then its detections are boxes only); off by default because full-image
+            masks of a whole test split take gigabytes.
     Returns:
         ``{(scene_id, im_id): Detections}`` sorted by decreasing score within each image; images
         without any detection are absent. A missing ``bbox`` is derived from the mask.

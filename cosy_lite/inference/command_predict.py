@@ -182,6 +182,20 @@ def predict_image(predictor, rgb: np.ndarray, K: np.ndarray, depth: np.ndarray |
     return ImagePrediction(good, len(est) - len(good), overlay, seconds)
 
 
+def _detection_json(est: PoseEstimates, i: int) -> dict[str, Any]:
+    """Estimate ``i``'s detection: box (x1, y1, x2, y2 px), score and mask (COCO RLE; None: a box only)."""
+    from cosy_lite.bop.detections import mask_to_rle
+
+    mask = None if est.masks is None else mask_to_rle(est.masks[i].numpy())
+    return {"box_xyxy_px": [float(v) for v in est.boxes[i].tolist()], "score": float(est.scores[i]), "mask_rle": mask}
+
+
+def _start_json(est: PoseEstimates, i: int) -> dict[str, Any]:
+    """Where estimate ``i``'s refinement started (the chosen template or the coarse pose): R, t in mm."""
+    T = est.TCO_coarse[i].double().numpy()
+    return {"R": T[:3, :3].tolist(), "t": [float(v * 1000.0) for v in T[:3, 3]]}
+
+
 def _load_inputs(args: argparse.Namespace):
     """rgb [H,W,3] uint8, K [3,3], depth [H,W] m or None; sizes checked against each other and the camera file."""
     from cosy_lite.bop import io
@@ -259,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
     out = {
         "rgb": str(args.rgb), "depth": None if args.depth is None else str(args.depth),
         "camera_K": np.asarray(K).tolist(), "backend": predictor.backend, "icp": config.icp,
-        "estimates": [{**estimate_to_json(r), "box_xyxy_px": [float(v) for v in est.boxes[i].tolist()]}
+        "estimates": [{**estimate_to_json(r), "detection": _detection_json(est, i), "start": _start_json(est, i)}
                       for i, r in enumerate(rows)],
         "n_invalid_dropped": pred.n_invalid, "seconds": pred.seconds, "timings_ms": timings_ms,
     }

@@ -23,7 +23,8 @@ class PoseEstimates:
     written; TCO_coarse [N,4,4] where the refiner started (after the coarse model, or the chosen
     template); icp: one
     :class:`~cosy_lite.inference.icp.IcpResult` per object, or None when ICP did not run;
-    TCO_before_icp [N,4,4]: the refiner's poses when ICP ran (None otherwise);
+    TCO_before_icp [N,4,4]: the refiner's poses when ICP ran (None otherwise); masks [N,H,W] bool:
+    the detections' masks (None for detections given as boxes only);
     timings: seconds per stage (:data:`TIMING_KEYS`; "crops" is the rest of the pose iterations:
     crop boxes, roi_align, K_crop, pose updates).
     """
@@ -37,6 +38,7 @@ class PoseEstimates:
     timings: dict[str, float] = field(default_factory=dict)
     icp: list[IcpResult] | None = None
     TCO_before_icp: Tensor | None = None
+    masks: Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.obj_ids)
@@ -52,9 +54,10 @@ class PoseEstimates:
         keep = self.valid.nonzero().flatten().tolist()
         icp = None if self.icp is None else [self.icp[i] for i in keep]
         before = None if self.TCO_before_icp is None else self.TCO_before_icp[keep]
+        masks = None if self.masks is None else self.masks[keep]
         return replace(self, obj_ids=self.obj_ids[keep], TCO=self.TCO[keep], scores=self.scores[keep],
                        boxes=self.boxes[keep], valid=self.valid[keep], TCO_coarse=self.TCO_coarse[keep], icp=icp,
-                       TCO_before_icp=before)
+                       TCO_before_icp=before, masks=masks)
 
     def before_icp(self) -> "PoseEstimates":
         """The estimates as they were before ICP (the refiner's poses; validity and timings without

@@ -369,7 +369,8 @@ class Predictor:
         Args:
             rgb: [H,W,3] uint8; K: [3,3] intrinsics (px); depth: [H,W] camera z in metres (0 =
                 unknown), used by ICP (when enabled) only;
-            detections: boxes (+ masks for ICP), obj_ids, scores; None: run the detector;
+            detections: boxes (+ masks for ICP and template starts; boxes only: the boxes stand in), obj_ids,
+                scores; None: run the detector;
             obj_ids: keep only detections of these objects.
         Returns: :class:`PoseEstimates` by decreasing score (empty when nothing is detected);
         detections whose box has a side under :data:`~cosy_lite.bop.detections.MIN_BOX_SIZE_PX`
@@ -391,9 +392,12 @@ class Predictor:
             det = det.select(~bad)
         if len(det) == 0:
             return PoseEstimates.empty(self._timings(clock, t_start))
+        given_masks = det.masks  # what predictions record (not the boxes standing in)
         if self.needs_masks and det.masks is None:
-            raise ValueError("start='templates' matches the detection masks, but these detections have none "
-                             "(give detections with masks, e.g. oracle or BOP22 JSON detections with 'segmentation')")
+            warnings.warn(f"Predictor: start={self.config.start!r} matches detection masks, but these {len(det)} "
+                          "detections are boxes only: the boxes stand in for their masks (a weaker silhouette match)",
+                          RuntimeWarning, stacklevel=2)
+            det = dataclasses.replace(det, masks=torch.from_numpy(box_masks(det.boxes, (H, W))))
         with flush_denormals():
             TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock)
         icp_results, TCO_before_icp = None, None
@@ -412,7 +416,8 @@ class Predictor:
                           f"{invalid} (obj_ids {det.obj_ids[invalid].tolist()}); flagged valid=False", RuntimeWarning,
                           stacklevel=2)
         return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
-                             TCO_coarse, self._timings(clock, t_start), icp_results, TCO_before_icp)
+                             TCO_coarse, self._timings(clock, t_start), icp_results, TCO_before_icp,
+                             None if given_masks is None else given_masks.clone())
 
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections,
                clock: Clock) -> tuple[Tensor, Tensor, Tensor | None]:
