@@ -87,7 +87,9 @@ def _check_outputs(s: dict, out: Path, backend: str) -> dict:
         assert any(np.allclose([x1, y1, x2 - x1, y2 - y1], g["bbox"], atol=1e-3) for g in s["dets"])
         start = np.array(e["start"]["t"]) / 1000.0  # the box pose the coarse net started from
         assert min(np.abs(start - T[:3, 3]).max() for T in expected[e["obj_id"]]) < 1e-5
-    assert set(pred["timings_ms"]) == {"detection", "crops", "render", "networks", "icp", "total"}
+    assert set(pred["timings_ms"]) == {"detection", "crops", "render", "networks", "icp", "total", "templates"}
+    stages = sum(v for k, v in pred["timings_ms"].items() if k not in ("total", "templates"))
+    assert stages <= pred["timings_ms"]["total"] * 1.001  # the stages add up within the image's total
     assert pred["timings_ms"]["networks"] > 0 and pred["seconds"] > 0
     assert cv2.imread(str(out / "overlay.png")).shape == (480, 640, 3)
     est = read_results_csv(out / "predictions.csv")
@@ -121,6 +123,9 @@ def test_templates_start_without_a_coarse_checkpoint(setup, tmp_path, capsys):
                      "--detector", str(setup["detector"]), "--templates-cache", str(tmp_path / "tc"))) == 0
     pred = json.loads((tmp_path / "predictions.json").read_text())
     assert 0 < len(pred["estimates"]) <= 5
+    # the templates were rendered in this run: a one-time cost, apart from the image's total (it was in it, twice)
+    ms = pred["timings_ms"]
+    assert ms["templates"] > 0 and sum(v for k, v in ms.items() if k not in ("total", "templates")) <= ms["total"] * 1.001
     for e in pred["estimates"]:
         assert np.isfinite(e["t"]).all() and 100 < e["t"][2] < 5000  # mm, in front of the camera
         R = np.array(e["R"])

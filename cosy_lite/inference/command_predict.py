@@ -286,7 +286,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"obj {e['obj_id']:>3} score {e['score']:.3f} t [mm] {' '.join(f'{v:8.1f}' for v in e['t'])}")
     if pred.n_invalid:
         print(f"WARNING: {pred.n_invalid} invalid poses dropped")
-    print(f"{len(rows)} estimates ({predictor.backend}) in {1000 * pred.seconds:.0f} ms: "
-          + "  ".join(f"{k} {v:.0f}" for k, v in timings_ms.items() if k != "total"))
+    stages = "  ".join(f"{k} {v:.0f}" for k, v in timings_ms.items() if k not in ("total", "templates"))
+    once = f"; once: templates {timings_ms['templates']:.0f} ms" if timings_ms["templates"] > 0 else ""
+    print(f"{len(rows)} estimates ({predictor.backend}) in {timings_ms['total']:.0f} ms: {stages}{once}")
     print(f"wrote {args.out / 'predictions.json'}, predictions.csv, overlay.png")
     return 0

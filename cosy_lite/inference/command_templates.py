@@ -17,7 +17,6 @@ objects already in ``DIR`` are skipped.
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 from cosy_lite.inference.command_predict import obj_id_list
@@ -52,13 +51,7 @@ def render_templates(models_dir: Path, cache: Path, obj_ids: list[int] | None = 
     objects, renderer, _ = objects_and_renderer(models, ids, None, icp=False, shading=shading)
     templates = start_templates(start, models, objects, renderer, cache)
     assert templates is not None
-    seconds = {}
-    for obj_id in ids:
-        t = time.perf_counter()
-        templates.templates(obj_id)
-        if templates.appearance is not None:
-            templates.appearance.descriptors(obj_id)
-        seconds[obj_id] = time.perf_counter() - t
+    seconds = {obj_id: templates.prepare([obj_id]) for obj_id in ids}
     renderer.close()
     return seconds
 

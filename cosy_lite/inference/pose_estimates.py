@@ -10,7 +10,9 @@ from torch import Tensor
 from cosy_lite.geometry.pose_checks import valid_poses
 from cosy_lite.inference.icp import IcpResult
 
-TIMING_KEYS = ("detection", "crops", "render", "networks", "icp", "total")
+# seconds per stage of an image; "total" is the image's (detection to the last pose) and does not
+# hold "templates": the one-time rendering of an object's templates, on its first image
+TIMING_KEYS = ("detection", "crops", "render", "networks", "icp", "total", "templates")
 
 
 @dataclass

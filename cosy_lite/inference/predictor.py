@@ -392,6 +392,7 @@ class Predictor:
             det = det.select(~bad)
         if len(det) == 0:
             return PoseEstimates.empty(self._timings(clock, t_start))
+        one_time = 0.0 if self.templates is None else self.templates.prepare(det.obj_ids.tolist(), progress=True)
         given_masks = det.masks  # what predictions record (not the boxes standing in)
         if self.needs_masks and det.masks is None:
             warnings.warn(f"Predictor: start={self.config.start!r} matches detection masks, but these {len(det)} "
@@ -416,7 +417,7 @@ class Predictor:
                           f"{invalid} (obj_ids {det.obj_ids[invalid].tolist()}); flagged valid=False", RuntimeWarning,
                           stacklevel=2)
         return PoseEstimates(det.obj_ids.clone(), TCO, det.scores.float().clone(), det.boxes.float().clone(), valid,
-                             TCO_coarse, self._timings(clock, t_start), icp_results, TCO_before_icp,
+                             TCO_coarse, self._timings(clock, t_start, one_time), icp_results, TCO_before_icp,
                              None if given_masks is None else given_masks.clone())
 
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections,
@@ -445,8 +446,8 @@ class Predictor:
             steps.append(("coarse", self.coarse, 1))
             TCO_coarse = TCO_init
         else:
-            with clock("crops"):
-                candidates = torch.from_numpy(self._template_candidates(det, K.numpy(), rgb)).to(self.device)
+            # (template matching is part of "crops": the rest of this stage's time, counted once below)
+            candidates = torch.from_numpy(self._template_candidates(det, K.numpy(), rgb)).to(self.device)
             if candidates.shape[1] == 1:
                 TCO_init = TCO_coarse = candidates[:, 0].float()
             else:
@@ -491,7 +492,9 @@ class Predictor:
         return candidates[at, pick], refined[at, pick], refined, pick
 
     @staticmethod
-    def _timings(clock: Clock, t_start: float) -> dict[str, float]:
+    def _timings(clock: Clock, t_start: float, templates: float = 0.0) -> dict[str, float]:
+        """Seconds per stage; ``templates``: the one-time template rendering, apart from the total."""
         out = {k: float(clock.seconds.get(k, 0.0)) for k in TIMING_KEYS}
-        out["total"] = time.perf_counter() - t_start
+        out["templates"] = templates
+        out["total"] = time.perf_counter() - t_start - templates
         return out

@@ -117,6 +117,10 @@ class AppearanceTemplates:
         self._cache: dict[int, Tensor] = {}
         silhouettes.appearance = self
 
+    def ready(self, obj_id: int) -> bool:
+        """Whether the descriptors of ``obj_id`` are in memory."""
+        return int(obj_id) in self._cache
+
     def descriptors(self, obj_id: int) -> Tensor:
         """``[N,D]`` float32 descriptors of the templates of ``obj_id`` (computed on first use)."""
         obj_id = int(obj_id)
