@@ -124,3 +124,31 @@ def test_deterministic_and_cheap_resume(written, tmp_path):
     write_bop_models([2, 13], other)
     for rel in ("models/obj_000002.ply", "models/obj_000013.ply", "models_eval/obj_000013.ply"):
         assert (other / rel).read_bytes() == (root / rel).read_bytes()
+
+
+def test_a_reference_sets_meshes_come_from_the_package(tmp_path, monkeypatch):
+    """``predict --pretrained ycbvsynth`` needs the set's meshes: without a generated dataset they are
+    written once from the installed package into the cache (it stopped: "no models_info.json")."""
+    from cosy_lite.errors import BopFormatError
+    from cosy_lite.inference.command_predict import _reference_meshes
+    from cosy_lite.synth.objects import library_models
+
+    monkeypatch.setenv("COSY_LITE_DATA", str(tmp_path / "data"))
+    monkeypatch.setenv("COSY_LITE_CACHE", str(tmp_path / "cache"))
+    models = _reference_meshes("ycbvsynth")
+    assert models == tmp_path / "cache" / "meshes" / "ycbvsynth" / "models"
+    assert len(list(models.glob("obj_*.ply"))) == 21 and (models / "models_info.json").is_file()
+    stamp = (models / "obj_000001.ply").stat().st_mtime_ns
+    assert library_models("ycbvsynth") == models and (models / "obj_000001.ply").stat().st_mtime_ns == stamp  # once
+    (tmp_path / "data" / "ycbvsynth" / "models").mkdir(parents=True)
+    (tmp_path / "data" / "ycbvsynth" / "models" / "models_info.json").write_text("{}")
+    assert library_models("ycbvsynth") == tmp_path / "data" / "ycbvsynth" / "models"  # a generated dataset's first
+    with pytest.raises(BopFormatError, match="not a dataset the package generates"):
+        library_models("myobjects")
+
+
+def test_predict_takes_the_meshes_of_the_pretrained_set(capsys):
+    from cosy_lite.cli import main
+
+    assert main(["predict", "--rgb", "x.png", "--camera", "c.json", "--out", "o"]) == 2
+    assert "give --meshes NAME_OR_DIR" in capsys.readouterr().err

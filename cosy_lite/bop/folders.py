@@ -18,6 +18,12 @@ def default_data_root() -> Path:
     return Path(os.environ.get("COSY_LITE_DATA", "data"))
 
 
+def default_cache_dir() -> Path:
+    """Where rendered templates, scorer observations and generated meshes are kept between runs:
+    ``$COSY_LITE_CACHE``, default ``~/.cache/cosy_lite``."""
+    return Path(os.environ.get("COSY_LITE_CACHE") or Path.home() / ".cache" / "cosy_lite")
+
+
 def where_datasets_are() -> str:
     """How a dataset name becomes a folder, for "not found" errors."""
     return (f"a dataset NAME is the folder $COSY_LITE_DATA/NAME (COSY_LITE_DATA now: {default_data_root()}); "

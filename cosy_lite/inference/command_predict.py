@@ -56,8 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="depth value * S = mm (default: the camera file's depth_scale, else 1)")
     p.add_argument("--camera", type=Path, required=True, metavar="K.json",
                    help="intrinsics: BOP camera.json (fx, fy, cx, cy), a scene_camera entry (cam_K) or {\"K\": 3x3}")
-    p.add_argument("--meshes", required=True, metavar="NAME_OR_DIR",
-                   help="the objects' 3D models: a BOP models/ folder, a dataset folder, or a dataset name")
+    p.add_argument("--meshes", default=None, metavar="NAME_OR_DIR",
+                   help="the objects' 3D models: a BOP models/ folder, a dataset folder, or a dataset name "
+                        "(default with --pretrained: the set's objects, generated from the package on first use)")
     p.add_argument("--pretrained", default=None, metavar="NAME",
                    help="the shipped reference models NAME (e.g. ycbvsynth) with their inference settings (pipeline.json; "
                         "torch backend); networks and settings given as well win")
@@ -109,11 +110,21 @@ def models_folder(name_or_dir: str) -> Path:
                          "folder or a dataset name under $COSY_LITE_DATA)")
 
 
+def _reference_meshes(name: str) -> Path:
+    """The ``models/`` folder of the objects of the reference set ``name`` (its dataset's meshes)."""
+    from cosy_lite.synth.objects import library_models
+    from cosy_lite.weights.reference_models import reference_models
+
+    return library_models(reference_models(name).dataset)
+
+
 def _argument_problem(args: argparse.Namespace) -> str | None:
     if args.onnx is not None and any(v is not None for v in (args.coarse, args.refiner, args.detector, args.pretrained,
                                                              args.scorer)):
         return ("give either checkpoints (--pretrained/--coarse/--refiner/--detector/--scorer) or --onnx EXPORT_DIR, "
                 "not both")
+    if args.meshes is None and args.pretrained is None:
+        return "give --meshes NAME_OR_DIR (the objects' 3D models), or --pretrained NAME (its objects' meshes)"
     if args.depth_scale is not None and not (np.isfinite(args.depth_scale) and args.depth_scale > 0):
         return f"--depth-scale {args.depth_scale}: expected a number > 0 (depth value * S = mm)"
     for name, value, least in (("--threads", args.threads, 1), ("--scene-id", args.scene_id, 0), ("--im-id", args.im_id, 0)):
@@ -252,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    models_dir = models_folder(args.meshes)
+    models_dir = models_folder(args.meshes) if args.meshes is not None else _reference_meshes(args.pretrained)
     rgb, K, depth = _load_inputs(args)
     predictor = _build_predictor(args, config, models_dir)
     if args.objects:

@@ -71,10 +71,6 @@ class ScorerTrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
 
 
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("COSY_LITE_CACHE") or Path.home() / ".cache" / "cosy_lite")
-
-
 def augment_crops(x: Tensor, cfg: CropAugmentationConfig) -> Tensor:
     """``[B,3,S,S]`` crops in [0, 1] (black outside the object) changed as ``cfg`` says."""
     B, _, S, _ = x.shape
@@ -128,6 +124,8 @@ class ScorerTask:
 
         self.cfg = cfg
         self.dataset = BopDataset(Path(dataset_root), cfg.dataset)
+        from cosy_lite.bop.folders import default_cache_dir
+
         cache = Path(cfg.data.cache_dir) if cfg.data.cache_dir else default_cache_dir()
         objects = ObjectTable.from_dataset(self.dataset, cfg.data.obj_ids or None)
         renderer = GlRenderer.from_dataset(self.dataset, shading=cfg.data.template_shading)

@@ -113,6 +113,14 @@ class ReferenceModels:
         return self.weights.get(kind)
 
     @property
+    def dataset(self) -> str:
+        """The dataset the set was trained on (its cards' and pipeline's ``dataset``; else its name)."""
+        for record in (self.pipeline, *self.cards.values()):
+            if isinstance(record.get("dataset"), str):
+                return record["dataset"]
+        return self.name
+
+    @property
     def pipeline_path(self) -> Path:
         return self.folder / PIPELINE_FILE
 
