@@ -19,6 +19,7 @@ TOY_RUNS = {
     "bench_synth.py": (["--images", "2", "--workers", "1", "--objects", "2", "3", "--views", "2"], "| 1 | 2 |"),
     "bench_eval.py": (["{data}", "--estimates", "10", "--repeat", "1", "--variants", "bop19"], "| 10 | bop19 |"),
     "bench_icp.py": (["--objects", "1", "--repeats", "1"], "| 1 |"),
+    "bench_score_threshold.py": (["{data}", "oracle", "--thresholds", "0", "0.5", "--top-k", "0", "1"], "| 0.5 | 1 |"),
     "bench_render.py": (["--meshes", "{data}/models", "--objects", "1", "2", "--batches", "2", "--resolutions", "60x80",
                          "--calls", "1"], "| 60x80 | 2 | rgb+depth |"),
     "bench_inference.py": (["--dataset", "{data}", "--objects", "1", "--repeats", "1", "--warmup", "0", "--threads", "1",

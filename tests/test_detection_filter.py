@@ -47,3 +47,12 @@ def test_one_per_region_uses_masks_when_there_are_some():
 def test_bad_settings_are_refused(kw):
     with pytest.raises(ValueError):
         DetectionFilter(**kw)
+
+
+def test_max_per_object_keeps_the_best_scored_of_each_object():
+    det = Detections(boxes=torch.tensor([[0, 0, 10, 10], [20, 0, 30, 10], [40, 0, 50, 10], [60, 0, 70, 10.0]]),
+                     obj_ids=torch.tensor([1, 1, 2, 1]), scores=torch.tensor([0.5, 0.9, 0.4, 0.7]))
+    assert DetectionFilter(max_per_object=1)(det).scores.tolist() == pytest.approx([0.9, 0.4])
+    assert DetectionFilter(max_per_object=2)(det).scores.tolist() == pytest.approx([0.9, 0.7, 0.4])
+    assert DetectionFilter(min_score=0.6, max_per_object=1)(det).scores.tolist() == pytest.approx([0.9])
+    assert DetectionFilter()(det).scores.tolist() == pytest.approx([0.9, 0.7, 0.5, 0.4])

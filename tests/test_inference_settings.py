@@ -149,3 +149,27 @@ def test_no_refiner_iterations_alone_works_over_a_set_with_candidates():
     assert (cfg.n_refiner_iterations, cfg.n_candidates) == (2, 5)
     with pytest.raises(Exception, match="needs n_refiner_iterations >= 1"):  # asked for both: say why not
         config_from_arguments(ap.parse_args(["--n-refiner-iters", "0", "--candidates", "5"]), base, "pipeline.json")
+
+
+def test_predict_filters_by_default_and_infer_does_not():
+    """predict keeps detections scoring >= 0.5, the best one per object (bench/bench_score_threshold.py's best
+    F1; it posed every detection: 36 estimates on an image of 10 objects); flags win; infer keeps all."""
+    import argparse
+
+    from cosy_lite.inference import command_infer, command_predict
+    from cosy_lite.inference.settings import PREDICT_DEFAULTS, pretrained_config
+
+    def predict_config(*flags: str):
+        ap = argparse.ArgumentParser()
+        command_predict.add_arguments(ap)
+        return command_predict._settings(ap.parse_args(["--rgb", "x", "--camera", "c", "--out", "o", *flags]))
+
+    assert PREDICT_DEFAULTS == {"min_score": 0.5, "max_per_object": 1}
+    cfg = predict_config("--pretrained", "ycbvsynth")
+    assert (cfg.min_score, cfg.max_per_object, cfg.start) == (0.5, 1, "appearance")  # over the set's settings
+    cfg = predict_config("--pretrained", "ycbvsynth", "--min-score", "0", "--max-per-object", "0")
+    assert (cfg.min_score, cfg.max_per_object) == (0.0, 0)
+    ap = argparse.ArgumentParser()
+    command_infer.add_arguments(ap)
+    cfg = pretrained_config(ap.parse_args(["--dataset", "d", "--pretrained", "ycbvsynth"]))
+    assert (cfg.min_score, cfg.max_per_object) == (0.0, 0)

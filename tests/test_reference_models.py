@@ -158,7 +158,7 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
     (folder / "pipeline.json").unlink()
     pipeline = json.loads((reference_root() / NAME / "pipeline.json").read_text())
     monkeypatch.setenv("COSY_LITE_MODELS", str(tmp_path))
-    changed = {"start": "templates", "n_candidates": 3, "n_refiner_iterations": 2, "min_score": 0.25,
+    changed = {"start": "templates", "n_candidates": 3, "n_refiner_iterations": 2, "min_score": 0.25, "max_per_object": 2,
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
                "fuse_bn": False, "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried

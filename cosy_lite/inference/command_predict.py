@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cosy_lite.inference.settings import PREDICT_DEFAULTS, flag_problem
 from cosy_lite.inference.settings import add_arguments as add_setting_arguments
-from cosy_lite.inference.settings import flag_problem
 from cosy_lite.inference.starts import TEMPLATE_STARTS
 
 if TYPE_CHECKING:
@@ -153,8 +153,8 @@ def _settings(args: argparse.Namespace) -> Any:
         from cosy_lite.export.manifest import Manifest
 
         manifest = Manifest.read(args.onnx)
-        return config_from_arguments(args, manifest.inference, manifest.path)
-    return pretrained_config(args)
+        return config_from_arguments(args, {**PREDICT_DEFAULTS, **manifest.inference}, manifest.path)
+    return pretrained_config(args, defaults=PREDICT_DEFAULTS)
 
 
 def _given_detections(path: Path, known: list[int], with_masks: bool = False):

@@ -27,11 +27,13 @@ from cosy_lite.bop.detections import Detections
 @dataclass(frozen=True)
 class DetectionFilter:
     """``min_score``: keep detections scoring at least this; ``one_per_region``: greedy by score,
-    drop a detection overlapping a kept one (any class) by IoU > ``region_iou``."""
+    drop a detection overlapping a kept one (any class) by IoU > ``region_iou``; ``max_per_object``:
+    at most this many detections of each object, the best scored."""
 
     min_score: float = 0.0
     one_per_region: bool = False
     region_iou: float = 0.5
+    max_per_object: int = 0  # at most this many per object id, the best scored (0: no limit)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_score <= 1.0:
@@ -41,13 +43,16 @@ class DetectionFilter:
 
     @property
     def active(self) -> bool:
-        return self.min_score > 0.0 or self.one_per_region
+        return self.min_score > 0.0 or self.one_per_region or self.max_per_object > 0
 
     def __call__(self, det: Detections) -> Detections:
         """The kept detections of ``det``, by decreasing score (ties: input order)."""
         det = det.select(torch.argsort(det.scores, descending=True, stable=True))
         if self.min_score > 0:
             det = det.select(det.scores >= self.min_score)
+        if self.max_per_object > 0:
+            rank = [det.obj_ids[:i].tolist().count(int(o)) for i, o in enumerate(det.obj_ids.tolist())]
+            det = det.select(torch.tensor(rank, dtype=torch.long) < self.max_per_object)
         if not self.one_per_region or len(det) < 2:
             return det
         overlap = region_ious(det)

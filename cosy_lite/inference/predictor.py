@@ -155,7 +155,7 @@ class Predictor:
         if config.start == "appearance" and templates is not None and templates.appearance is None:
             AppearanceTemplates(templates, renderer)  # attaches itself: templates.match ranks by appearance
         self.templates = templates
-        self.detection_filter = DetectionFilter(config.min_score, config.one_per_region)
+        self.detection_filter = DetectionFilter(config.min_score, config.one_per_region, max_per_object=config.max_per_object)
         if isinstance(detector, nn.Module):  # else an onnxruntime detector (OnnxDetector)
             detector.to(self.device).eval()
         self._nets: dict[str, nn.Module | Callable[[Tensor], Tensor]] = {}
