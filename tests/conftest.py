@@ -17,6 +17,21 @@ sys.path.insert(0, str(TESTS))  # bop_fixtures, toy_task
 TEST_THREADS = 1
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _own_cache(tmp_path_factory):
+    """Templates, observations and meshes that commands keep between runs go to a folder of this test
+    run ($COSY_LITE_CACHE), not to the user's ~/.cache."""
+    import os
+
+    before = os.environ.get("COSY_LITE_CACHE")
+    os.environ["COSY_LITE_CACHE"] = str(tmp_path_factory.mktemp("cosy_lite_cache"))
+    yield
+    if before is None:
+        os.environ.pop("COSY_LITE_CACHE", None)
+    else:
+        os.environ["COSY_LITE_CACHE"] = before
+
+
 @pytest.fixture(autouse=True)
 def _same_arithmetic_everywhere():
     """Each test starts from the same random state (Python, numpy, torch) and the same torch thread

@@ -173,3 +173,15 @@ def test_predict_filters_by_default_and_infer_does_not():
     command_infer.add_arguments(ap)
     cfg = pretrained_config(ap.parse_args(["--dataset", "d", "--pretrained", "ycbvsynth"]))
     assert (cfg.min_score, cfg.max_per_object) == (0.0, 0)
+
+
+def test_templates_are_kept_between_runs_by_default(tmp_path, monkeypatch):
+    """infer and predict keep rendered templates in $COSY_LITE_CACHE/templates unless told where (a
+    second predict rendered them all again: 187 s warm against 202 s cold)."""
+    import argparse
+
+    from cosy_lite.inference.settings import templates_cache
+
+    monkeypatch.setenv("COSY_LITE_CACHE", str(tmp_path))
+    assert templates_cache(argparse.Namespace(templates_cache=None)) == tmp_path / "templates"
+    assert templates_cache(argparse.Namespace(templates_cache=Path("mine"))) == Path("mine")

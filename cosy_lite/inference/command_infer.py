@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cosy_lite.inference.settings import add_arguments as add_setting_arguments
-from cosy_lite.inference.settings import flag_problem
+from cosy_lite.inference.settings import flag_problem, templates_cache
 from cosy_lite.inference.starts import TEMPLATE_STARTS
 
 if TYPE_CHECKING:
@@ -47,7 +47,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
                     help="--start appearance: the coarse scorer (train.py --model scorer) that describes the detections "
                          "(none: frozen ImageNet features)")
     ap.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
-                    help="template starts: keep the rendered templates in DIR between runs (default: render each run)")
+                    help="template starts: keep the rendered templates in DIR between runs (default: "
+                         "$COSY_LITE_CACHE/templates, ~/.cache/cosy_lite/templates)")
     ap.add_argument("--also-before-icp", default=None, metavar="METHOD",
                     help="with --icp: also write the poses before ICP as METHOD_DATASET-SPLIT.csv (the RGB-only "
                          "results of the same run, their time without ICP)")
@@ -154,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     dataset = BopDataset(root)
     if args.onnx is not None:
         predictor = Predictor.from_onnx(args.onnx, dataset=dataset, config=config, threads=args.threads,
-                                        detector=args.detections is None, templates_cache=args.templates_cache)
+                                        detector=args.detections is None, templates_cache=templates_cache(args))
         if args.detections is None and predictor.detector is None:
             raise SetupError(f"{args.onnx / 'manifest.json'}: the export has no detector: export one "
                              "(cosy-lite export --detector CKPT) or give --detections oracle|FILE.json")
@@ -163,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
         predictor = Predictor.from_checkpoints(
             detector=args.detector if args.detections is None else None, coarse=args.coarse,
             refiner=args.refiner, dataset=dataset, config=config, device=resolve_device(args.device),
-            templates_cache=args.templates_cache, scorer=args.scorer)
+            templates_cache=templates_cache(args), scorer=args.scorer)
         detector_path = args.detector if args.detections is None else None
     summary = run_on_split(predictor, dataset, args.out, args.split, method, args.detections, args.vis,
                            args.limit_images, progress=not args.no_progress, detector_path=detector_path,

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cosy_lite.inference.settings import PREDICT_DEFAULTS, flag_problem
+from cosy_lite.inference.settings import PREDICT_DEFAULTS, flag_problem, templates_cache
 from cosy_lite.inference.settings import add_arguments as add_setting_arguments
 from cosy_lite.inference.starts import TEMPLATE_STARTS
 
@@ -73,7 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="BOP22 detections of this image instead of the detector (all its entries must be one image)")
     p.add_argument("--objects", type=obj_id_list, default=None, metavar="1,5", help="estimate only these objects")
     p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
-                   help="template starts: keep the rendered templates in DIR between runs")
+                   help="template starts: keep the rendered templates in DIR between runs (default: "
+                        "$COSY_LITE_CACHE/templates, ~/.cache/cosy_lite/templates)")
     p.add_argument("--device", default=None, help="torch backend: cpu or cuda (default: cuda when available)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the networks")
     p.add_argument("--scene-id", type=int, default=0, help="scene_id of the CSV rows (default 0)")
@@ -231,7 +232,7 @@ def _build_predictor(args: argparse.Namespace, config: InferenceConfig, models_d
     from cosy_lite.devices import resolve_device
     from cosy_lite.inference.predictor import Predictor, SetupError
 
-    common = dict(models_dir=models_dir, config=config, obj_ids=args.objects, templates_cache=args.templates_cache)
+    common = dict(models_dir=models_dir, config=config, obj_ids=args.objects, templates_cache=templates_cache(args))
     if args.onnx is not None:
         p = Predictor.from_onnx(args.onnx, threads=args.threads, detector=args.detections is None, **common)
         if args.detections is None and p.detector is None:
