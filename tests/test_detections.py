@@ -6,6 +6,7 @@ import json
 import math
 
 import bop_fixtures as fx
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -232,20 +233,99 @@ def test_2d_detection_ap_by_hand(dataset, tmp_path):
     assert s["AP"] == -1.0 and s["average_time_per_image"] == -1.0
 
 
-def test_2d_detection_counts_ground_truth_under_10_percent_visible(tmp_path):
-    """The toolkit's GT marks instances under 10 % visible 'ignore', but pycocotools replaces that flag
-    by 'iscrowd' (0): a missed, barely visible instance still costs recall, as in the toolkit."""
-    root = fx.write_tiny_bop(tmp_path / "bop")
-    path = root / fx.SPLIT / f"{fx.SCENE_ID:06d}" / "scene_gt_info.json"
+# Image 0 rewritten (toolkit semantics of eval_bop22_coco.py, each number checked against the official
+# toolkit with its pycocotools fork): obj 1 cut by the left border and partly occluded, obj 2 hidden.
+CUT_FULL = (0, 100, 100, 80)  # x, y, w, h of obj 1's full mask: columns 0..99, rows 100..179
+CUT_VISIB = (40, 100, 60, 60)  # its visible part: 3,600 px (COCO "medium"), visib_fract 0.45
+CUT_BBOX_OBJ = [-50, 90, 160, 100]  # its projected box, beyond the border and looser than the mask
+HIDDEN_FULL, HIDDEN_VISIB = (400, 300, 50, 50), (400, 300, 10, 10)  # obj 2: 100 of 2,500 px visible
+
+
+def _write_masks(root, im_id: int, gt_idx: int, full, visib) -> None:
+    for sub, (x, y, w, h) in (("mask", full), ("mask_visib", visib)):
+        mask = np.zeros((fx.HEIGHT, fx.WIDTH), np.uint8)
+        mask[y:y + h, x:x + w] = 255
+        cv2.imwrite(str(fx.scene_dir(root) / sub / f"{im_id:06d}_{gt_idx:06d}.png"), mask)
+
+
+def border_and_hidden_dataset(parent) -> BopDataset:
+    """The tiny dataset with image 0 as above; ``gt_info`` as the toolkit's ``calc_gt_info.py`` writes
+    it (``bbox_visib`` one pixel short of the mask's extent)."""
+    root = fx.write_tiny_bop(parent)
+    _write_masks(root, 0, 0, CUT_FULL, CUT_VISIB)
+    _write_masks(root, 0, 1, HIDDEN_FULL, HIDDEN_VISIB)
+    path = fx.scene_dir(root) / "scene_gt_info.json"
     info = json.loads(path.read_text())
-    info["0"][1]["visib_fract"] = 0.05  # obj 2 of image 0
+    for k, (full, visib, bbox_obj) in enumerate(((CUT_FULL, CUT_VISIB, CUT_BBOX_OBJ),
+                                                 (HIDDEN_FULL, HIDDEN_VISIB, list(HIDDEN_FULL)))):
+        n_all, n_vis = full[2] * full[3], visib[2] * visib[3]
+        info["0"][k].update(bbox_obj=bbox_obj, bbox_visib=[visib[0], visib[1], visib[2] - 1, visib[3] - 1],
+                            px_count_all=n_all, px_count_valid=n_all, px_count_visib=n_vis, visib_fract=n_vis / n_all)
     path.write_text(json.dumps(info))
-    ds = BopDataset(root)
+    return BopDataset(root)
+
+
+def _square_rle(x: int, y: int, w: int, h: int) -> dict:
+    from cosy_lite.bop.detections import mask_to_rle
+
+    mask = np.zeros((fx.HEIGHT, fx.WIDTH), bool)
+    mask[y:y + h, x:x + w] = True
+    return mask_to_rle(mask)
+
+
+def hand_cases() -> list[tuple[str, str, list[dict], dict[str, float]]]:
+    """(ann_type, bbox_type, results of image 0, expected scores) on :func:`border_and_hidden_dataset`."""
+    def det(obj_id, box, score, **extra):
+        return {"scene_id": fx.SCENE_ID, "image_id": 0, "category_id": obj_id, "score": score,
+                "bbox": [float(v) for v in box], "time": 0.5, **extra}
+
+    x, y, w, h = CUT_VISIB
+    return [
+        # the amodal GT box is the full mask's: IoU 1 (the clipped bbox_obj would give 0.73: AP 0.5);
+        # obj 2 has only an ignored GT instance: its category is not scored (AP 1, not 0.5)
+        ("bbox", "amodal", [det(1, CUT_FULL, 0.9)], {"AP": 1.0, "AR100": 1.0, "AP_medium": 1.0}),
+        ("bbox", "amodal", [det(1, [0, 90, 110, 100], 0.9)], {"AP": 0.5, "AP50": 1.0, "AP75": 0.0}),
+        # a detection on the ignored instance is neither a true nor a false positive
+        ("bbox", "amodal", [det(2, HIDDEN_FULL, 0.95), det(1, CUT_FULL, 0.9), det(2, (600, 0, 20, 20), 0.99)],
+         {"AP": 1.0, "AR1": 1.0}),
+        # modal: the visible mask's box (gt_info's bbox_visib is a pixel short); a box 6 px narrower
+        # has IoU 0.9: matched at 9 of the 10 thresholds
+        ("bbox", "modal", [det(1, CUT_VISIB, 0.9)], {"AP": 1.0}),
+        ("bbox", "modal", [det(1, (x, y, w - 6, h), 0.9)], {"AP": 0.9, "AP75": 1.0}),
+        # segmentation with boxes: the box's area (100 px, "small") decides the size class of the
+        # false positive whose mask has 2,500 px ("medium"): it costs AP but not AP_medium
+        ("segm", "amodal", [det(1, CUT_VISIB, 0.5, segmentation=_square_rle(*CUT_VISIB)),
+                            det(1, (600, 0, 10, 10), 0.9, segmentation=_square_rle(300, 20, 50, 50))],
+         {"AP": 0.5, "AP_medium": 1.0, "AP_small": -1.0, "AR100": 1.0}),
+        # ... without boxes the mask's area decides: AP_medium 0.5
+        ("segm", "amodal", [{k: v for k, v in d.items() if k != "bbox"} for d in (
+            det(1, CUT_VISIB, 0.5, segmentation=_square_rle(*CUT_VISIB)),
+            det(1, (600, 0, 10, 10), 0.9, segmentation=_square_rle(300, 20, 50, 50)))],
+         {"AP": 0.5, "AP_medium": 0.5}),
+    ]
+
+
+def test_2d_ground_truth_boxes_are_the_boxes_of_the_masks(tmp_path):
+    ds = border_and_hidden_dataset(tmp_path)
     rec = ds.image(fx.SPLIT, fx.SCENE_ID, 0)
-    gt, _ = coco_ground_truth(ds, [rec], "amodal")
-    assert [a["ignore"] for a in gt["annotations"]] == [0, 1]
-    box = _gt_boxes(ds, rec)
-    assert _scores(ds, rec, [_entry(rec, 1, box[1], 0.5)], tmp_path)["AP"] == pytest.approx(0.5)
+    amodal, _ = coco_ground_truth(ds, [rec], "amodal")
+    modal, _ = coco_ground_truth(ds, [rec], "modal")
+    assert [a["bbox"] for a in amodal["annotations"]] == [list(map(float, CUT_FULL)), list(map(float, HIDDEN_FULL))]
+    assert [a["bbox"] for a in modal["annotations"]] == [list(map(float, CUT_VISIB)), list(map(float, HIDDEN_VISIB))]
+    assert [a["area"] for a in amodal["annotations"]] == [3600, 100]  # visible pixels, whatever the box
+    assert [a["ignore"] for a in amodal["annotations"]] == [0, 1]  # visib_fract 0.45, 0.04
+
+
+@pytest.mark.parametrize("case", range(7))
+def test_2d_scores_by_hand_as_the_toolkit(tmp_path, case):
+    from cosy_lite.eval.detection import bop22_coco_scores
+
+    ds = border_and_hidden_dataset(tmp_path)
+    ann_type, bbox_type, results, expected = hand_cases()[case]
+    path = tmp_path / "x_tiny-test.json"
+    path.write_text(json.dumps(results))
+    scores = bop22_coco_scores(ds, [ds.image(fx.SPLIT, fx.SCENE_ID, 0)], path, ann_type, bbox_type)
+    assert {k: scores[k] for k in expected} == pytest.approx(expected)
 
 
 def test_cosy_lite_eval_2d_tasks_write_the_toolkits_files(dataset, tmp_path, capsys):

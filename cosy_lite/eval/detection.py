@@ -1,12 +1,14 @@
 """COCO box and mask AP of 2D detections against BOP ground truth (pycocotools).
 
 Ground truth as the BOP toolkit builds it for its BOP22 2D evaluation (``scripts/calc_gt_coco.py``):
-one annotation per GT instance with at least one visible pixel, mask = ``mask_visib`` (RLE),
-``ignore`` set when ``visib_fract < 0.1`` (pycocotools' ``COCOeval`` overwrites that flag with
-``iscrowd``, so, as in the toolkit's evaluation, these instances count like the others). Boxes:
-``"modal"`` = ``bbox_visib`` (what :mod:`cosy_lite.nets.detector` is trained to output) or
-``"amodal"`` = ``bbox_obj`` clipped to the image (the toolkit's BOP22 default uses the box of the
-full ``mask/``, which this matches up to the rounding of the projected box).
+one annotation per GT instance with at least one visible pixel, mask = ``mask_visib`` (RLE), area =
+its pixel count, ``ignore`` set when ``visib_fract < 0.1``. Boxes are the tight boxes of masks
+(``[x, y, w, h]``, the last pixel included): ``"modal"`` the box of ``mask_visib`` (what
+:mod:`cosy_lite.nets.detector` is trained to output), ``"amodal"`` the box of the full ``mask/``
+(an instance whose full mask is empty is left out, as the toolkit). The toolkit scores with its
+pinned pycocotools fork, whose ``COCOeval`` keeps the ``ignore`` flag (PyPI's replaces it with
+``iscrowd``): :func:`_coco_eval` does the same, so a GT instance under 10 % visible neither costs
+recall when missed nor counts a detection on it as a false positive.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from cosy_lite.bop.detections import (
     read_bop22_entries,
     read_detections_json,
 )
+from cosy_lite.errors import BopFormatError
 
 VISIB_IGNORE = 0.1  # toolkit: GT less visible than this gets the ignore flag
 BBOX_TYPES = ("modal", "amodal")
@@ -54,13 +57,11 @@ class DetectionScores:
     n_detections: int
 
 
-def _gt_box(info: io.GtInfo, bbox_type: str, size: tuple[int, int]) -> list[float]:
-    if bbox_type == "modal":
-        return [float(v) for v in info.bbox_visib]
-    x, y, w, h = info.bbox_obj
-    x0, y0 = max(x, 0), max(y, 0)
-    x1, y1 = min(x + w, size[1]), min(y + h, size[0])
-    return [float(x0), float(y0), float(max(x1 - x0, 0)), float(max(y1 - y0, 0))]
+def mask_box(mask: np.ndarray) -> list[int]:
+    """The tight box ``[x, y, w, h]`` of a non-empty ``[H,W]`` mask, its last row and column included
+    (the toolkit's ``pycoco_utils.bbox_from_binary_mask``)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    return [int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)]
 
 
 def coco_ground_truth(dataset, records: Iterable, bbox_type: str = "modal") -> tuple[dict[str, Any], dict[ImageKey, int]]:
@@ -87,10 +88,15 @@ def coco_ground_truth(dataset, records: Iterable, bbox_type: str = "modal") -> t
                 continue
             mask = io.load_mask(dataset.mask_path(rec.split, rec.scene_id, rec.im_id, k, visib=True))
             size = mask.shape
+            if not mask.any():
+                continue
+            box_mask = mask if bbox_type == "modal" else _full_mask(dataset, rec, k)
+            if not box_mask.any():
+                continue
             annotations.append({
                 "id": len(annotations) + 1, "image_id": index[key], "category_id": int(gt.obj_id), "iscrowd": 0,
-                "area": int(mask.sum()), "bbox": _gt_box(info, bbox_type, size), "segmentation": mask_to_rle(mask),
-                "ignore": int(info.visib_fract < VISIB_IGNORE),
+                "area": int(mask.sum()), "bbox": [float(v) for v in mask_box(box_mask)],
+                "segmentation": mask_to_rle(mask), "ignore": int(info.visib_fract < VISIB_IGNORE),
             })
         if size is None:
             size = io.load_image(rec.rgb_path).shape[:2]
@@ -100,22 +106,66 @@ def coco_ground_truth(dataset, records: Iterable, bbox_type: str = "modal") -> t
     return {"images": images, "annotations": annotations, "categories": categories}, index
 
 
+def _full_mask(dataset, rec, k: int) -> np.ndarray:
+    path = dataset.mask_path(rec.split, rec.scene_id, rec.im_id, k, visib=False)
+    if not path.is_file():
+        raise BopFormatError(path, "mask", "full object mask not found (amodal boxes are the boxes of mask/; "
+                             "use --bbox-type modal for the boxes of mask_visib/)")
+    return io.load_mask(path)
+
+
+def _keep_ignore_flags(ev) -> None:
+    """Make ``COCOeval`` ``ev`` keep the GT ``ignore`` flags, as the toolkit's pycocotools fork does
+    (PyPI's ``_prepare`` sets every GT's ``ignore`` to its ``iscrowd``)."""
+    flags = {a["id"]: bool(a.get("ignore", 0)) for a in ev.cocoGt.dataset["annotations"]}
+    prepare = ev._prepare
+
+    def _prepare() -> None:
+        prepare()
+        for gts in ev._gts.values():
+            for g in gts:
+                g["ignore"] = flags[g["id"]] or bool(g["iscrowd"])
+
+    ev._prepare = _prepare
+
+
 def _coco_eval(gt: dict[str, Any], results: list[dict[str, Any]], iou_type: str) -> np.ndarray:
-    """COCOeval stats (12 numbers, -1 where undefined), pycocotools' printing silenced."""
+    """COCOeval stats (12 numbers, -1 where undefined) with the toolkit's ``ignore`` rule
+    (:func:`_keep_ignore_flags`), pycocotools' printing silenced."""
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
 
     with contextlib.redirect_stdout(_io.StringIO()):
         coco_gt = COCO()
-        coco_gt.dataset = gt
+        coco_gt.dataset = {**gt, "annotations": [dict(a) for a in gt["annotations"]]}  # COCOeval writes into them
         coco_gt.createIndex()
         coco_dt = coco_gt.loadRes([dict(r) for r in results])  # loadRes adds keys to the entries
         ev = COCOeval(coco_gt, coco_dt, iou_type)
+        _keep_ignore_flags(ev)
         ev.params.imgIds = sorted(coco_gt.getImgIds())
         ev.evaluate()
         ev.accumulate()
         ev.summarize()
     return ev.stats
+
+
+def _toolkit_order(entries: list[dict[str, Any]], scene_order: list[int]) -> list[dict[str, Any]]:
+    """``entries`` grouped by scene in the order the targets list the scenes, file order within a
+    scene: the order in which ``eval_bop22_coco.py`` hands the results to pycocotools."""
+    rank = {s: k for k, s in reversed(list(enumerate(scene_order)))}
+    return sorted(entries, key=lambda e: rank[e["scene_id"]])
+
+
+def _boxes_decide_areas(results: list[dict[str, Any]]) -> None:
+    """Segmentation results whose first entry has a box: pycocotools' ``loadRes`` then gives every
+    result the area of its box (not of its mask), and that area decides the small / medium / large
+    class of an unmatched detection. An entry without a box (where the toolkit stops with a
+    ``KeyError``) gets the box of its mask."""
+    from pycocotools import mask as mask_util
+
+    for r in results:
+        if "bbox" not in r:
+            r["bbox"] = [float(v) for v in mask_util.toBbox(r["segmentation"])]
 
 
 def _score(v: float) -> float:
@@ -163,8 +213,10 @@ def bop22_coco_scores(dataset, records: Iterable, path: str | Path, ann_type: st
     """The BOP 2D detection (``ann_type="bbox"``) or segmentation (``"segm"``) scores of a BOP22
     results JSON, as the toolkit's ``eval_bop22_coco.py`` computes them: only the images of
     ``records`` (the targets' images) and the entries on them that have a box (bbox) or a mask
-    (segm); COCO AP with pycocotools (at most 100 detections per image, the highest scores); the
-    ground truth of :func:`coco_ground_truth`. Returns :data:`COCO_KEYS` (-1 where undefined, and
+    (segm), in the toolkit's order (:func:`_toolkit_order`); a segmentation keeps its box where it
+    has one (:func:`_boxes_decide_areas`); COCO AP with pycocotools and the toolkit's ``ignore``
+    rule (at most 100 detections per image, the highest scores); the ground truth of
+    :func:`coco_ground_truth`. Returns :data:`COCO_KEYS` (-1 where undefined, and
     all -1 when no entry is left, as the toolkit) and ``average_time_per_image`` (the mean of the
     images' ``time``, -1 when an entry has none or an image's entries disagree).
     """
@@ -179,15 +231,17 @@ def bop22_coco_scores(dataset, records: Iterable, path: str | Path, ann_type: st
     consistent = all(len(t) == 1 and min(t) >= 0 for t in times.values())
     avg_time = float(np.mean([min(t) for t in times.values()])) if times and consistent else -1.0
     results = []
-    for e in entries:
+    for e in _toolkit_order(entries, [k[0] for k in index]):
         if e["bbox" if ann_type == "bbox" else "segmentation"] is None:
             continue
         r = {"image_id": index[(e["scene_id"], e["image_id"])], "category_id": e["category_id"], "score": e["score"]}
-        if ann_type == "bbox":
+        if e["bbox"] is not None:
             r["bbox"] = e["bbox"]
-        else:
+        if ann_type == "segm":
             r["segmentation"] = compressed_rle(e["segmentation"])
         results.append(r)
+    if ann_type == "segm" and results and "bbox" in results[0]:
+        _boxes_decide_areas(results)
     stats = _coco_eval(gt, results, ann_type) if results and gt["annotations"] else np.full(len(COCO_KEYS), -1.0)
     return {**{k: float(v) for k, v in zip(COCO_KEYS, stats)}, "average_time_per_image": avg_time}
 
