@@ -220,3 +220,39 @@ def test_bop24_targets_are_read_and_checked(root: Path):
     path.write_text(json.dumps([{"im_id": -1, "scene_id": 0}]))
     with pytest.raises(BopFormatError, match=r"test_targets_bop24.json \[\[0\].im_id\]: expected a non-negative integer"):
         BopDataset(root).test_image_targets()
+
+
+def test_eval_command_6d_detection_scores_unknown_object_ids_as_the_toolkit(root: Path, capsys):
+    """The toolkit's checker accepts estimates of objects the dataset lacks and eval_bop24_pose.py
+    scores the file: they take places among an image's 100 best estimates and match no GT."""
+    from cosy_lite.cli import main
+
+    gt_ests = [PoseEstimate(0, im, GT[im][g][0], 1.0, _gt_pose(im, g), 0.2) for im in GT for g in range(len(GT[im]))]
+    csv = root.parent / "m_tiny-test.csv"
+
+    def bop24_map(unknown: list[PoseEstimate]) -> float:
+        write_results_csv(csv, gt_ests + unknown)
+        assert main(["eval", "--dataset", str(root), "--results", str(csv), "--task", "6d-detection",
+                     "--no-progress", "--out", str(root.parent / "ev")]) == 0
+        return json.loads((root.parent / "ev" / "scores_bop24.json").read_text())["bop24_mAP"]
+
+    # 5 estimates of obj 7 scored below the GT estimates: nothing changes
+    assert bop24_map([PoseEstimate(0, 0, 7, 0.5, _gt_pose(0, 0), 0.2)] * 5) == 1.0
+    out = capsys.readouterr().out
+    assert out.count("obj_ids 7 are not in") == 1 and "(5 estimates)" in out
+    # 100 of them above: image 0 keeps only those, so obj 1 is found 2 of 3 times (67 of the 101
+    # recall points) and obj 2 once of 2 (51 points), at every threshold of both errors
+    assert bop24_map([PoseEstimate(0, 0, 7, 2.0, _gt_pose(0, 0), 0.2)] * 100) == pytest.approx((67 + 51) / 2 / 101)
+    # the BOP19 task keeps refusing them (its targets name every scored object)
+    assert main(["eval", "--dataset", str(root), "--results", str(csv), "--no-progress"]) == 1
+    assert "obj_id 7 is not in" in capsys.readouterr().out
+
+
+def test_warnings_of_one_kind_are_one_line():
+    from cosy_lite.bop.validate import Problem, summarised
+
+    problems = [Problem("a.csv", f"line {n}: row", f"identical to line {n - 1}", "warning") for n in (3, 5, 9)]
+    problems.insert(1, Problem("a.csv", "line 4: score", "not a number", "error"))
+    lines = [str(p) for p in summarised(problems)]
+    assert lines == ["WARNING a.csv [line 3: row]: identical to line 2 (and 2 more like it: line 5: row; line 9: row)",
+                     "ERROR a.csv [line 4: score]: not a number"]

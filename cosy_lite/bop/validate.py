@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import codecs
 import math
+import re
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,9 +86,47 @@ def _short(ids: list[int]) -> str:
     return ", ".join(str(i) for i in ids[:MAX_LISTED]) + more
 
 
-def report(problems: list[Problem], subject: str) -> int:
-    """Print one line per problem and a summary; return the exit code (1 if any error)."""
+def _kind(p: Problem) -> tuple[str, str, str, str]:
+    """What makes two problems the same kind: file, severity, field and message but for their numbers."""
+    return p.path, p.severity, re.sub(r"\d+", "#", p.field), re.sub(r"-?\d+(\.\d+)?", "#", p.message)
+
+
+def summarised(problems: list[Problem]) -> list[Problem]:
+    """``problems`` with the warnings of one kind (:func:`_kind`) merged into their first, which
+    then gives their count and where the others are; errors stay one per line."""
+    groups: dict[tuple[str, str, str, str], list[Problem]] = {}
+    out: list[Problem | tuple] = []
     for p in problems:
+        if p.severity == "warning":
+            key = _kind(p)
+            if key not in groups:
+                out.append(key)
+            groups.setdefault(key, []).append(p)
+        else:
+            out.append(p)
+    merged: list[Problem] = []
+    for item in out:
+        if isinstance(item, Problem):
+            merged.append(item)
+            continue
+        first, rest = groups[item][0], groups[item][1:]
+        if rest:
+            where = _short_texts([r.field or r.message for r in rest])
+            first = Problem(first.path, first.field, f"{first.message} (and {len(rest)} more like it: {where})",
+                            first.severity)
+        merged.append(first)
+    return merged
+
+
+def _short_texts(texts: list[str]) -> str:
+    more = f" ... ({len(texts)} in all)" if len(texts) > MAX_LISTED else ""
+    return "; ".join(texts[:MAX_LISTED]) + more
+
+
+def report(problems: list[Problem], subject: str) -> int:
+    """Print one line per error and per kind of warning (:func:`summarised`), then a summary;
+    return the exit code (1 if any error)."""
+    for p in summarised(problems):
         print(p)
     n_err = sum(p.severity == "error" for p in problems)
     n_warn = len(problems) - n_err
@@ -466,6 +505,7 @@ def resolve_split_folder(root: Path, split: str, params: DatasetParams | None) -
 
 def _check_result_ids(
     csv_path: Path, root: Path, name: str, split: str | None, rows: list[ResultRow], out: _Collector,
+    allow_unknown_objects: bool = False,
 ) -> None:
     if not root.is_dir():
         out.error(root, "", "dataset folder not found")
@@ -478,12 +518,16 @@ def _check_result_ids(
     quiet = _Collector()
     scene_ims: dict[int, set[int] | None] = {}
     reported: set[tuple] = set()
+    unknown: Counter[int] = Counter()
     for row in rows:
         e, n = row.estimate, row.line
         assert e is not None  # check_results passes only rows with an estimate
-        if infos is not None and e.obj_id not in infos and ("obj", e.obj_id) not in reported:
-            reported.add(("obj", e.obj_id))
-            out.error(csv_path, f"line {n}: obj_id", f"obj_id {e.obj_id} is not in {info_path} (known: {sorted(infos)})")
+        if infos is not None and e.obj_id not in infos:
+            unknown[e.obj_id] += 1
+            if not allow_unknown_objects and ("obj", e.obj_id) not in reported:
+                reported.add(("obj", e.obj_id))
+                out.error(csv_path, f"line {n}: obj_id",
+                          f"obj_id {e.obj_id} is not in {info_path} (known: {sorted(infos)})")
         if split_dir is None:
             continue
         scene_dir = split_dir / f"{e.scene_id:06d}"
@@ -499,10 +543,15 @@ def _check_result_ids(
             out.error(csv_path, f"line {n}: im_id", f"image {e.im_id} not in {scene_dir / 'scene_camera.json'}")
     out.items += [Problem(p.path, p.field, f"{p.message} (image ids of this scene not checked)", "warning")
                   for p in quiet.items]
+    if allow_unknown_objects and unknown:
+        out.warning(csv_path, "obj_id", f"obj_ids {_short(sorted(unknown))} are not in {info_path} "
+                    f"({sum(unknown.values())} estimates): scored as the BOP toolkit scores them (they take "
+                    "places among an image's best estimates and match no GT)")
 
 
 def check_results(
     csv_path: str | Path, dataset_root: str | Path | None = None, name: str | None = None, split: str | None = None,
+    allow_unknown_objects: bool = False,
 ) -> list[Problem]:
     """Check a BOP19 results CSV: file name, header, every row, units, time rule, ids in the dataset.
 
@@ -512,6 +561,8 @@ def check_results(
         name: dataset name the file must be for (default: as in the file name; compared with the
             folder name as a warning).
         split: split the file must be for (default: as in the file name).
+        allow_unknown_objects: object ids the dataset lacks are one warning, not an error (the 6D
+            detection task, which the toolkit scores with them).
     """
     path = Path(csv_path)
     out = _Collector()
@@ -564,5 +615,6 @@ def check_results(
         if (n0 := first.setdefault(format_estimate(row.estimate), row.line)) != row.line:
             out.warning(path, f"line {row.line}: row", f"identical to line {n0}")
     if root is not None:
-        _check_result_ids(path, root, name or dataset_name_of(root), split or file_split, rows, out)
+        _check_result_ids(path, root, name or dataset_name_of(root), split or file_split, rows, out,
+                          allow_unknown_objects)
     return out.items

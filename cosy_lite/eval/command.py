@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.bop.io import atomic_write_text
     from cosy_lite.bop.params import dataset_name_of
-    from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report
+    from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report, summarised
     from cosy_lite.eval.evaluator import eval_split, evaluate
 
     if problem := _argument_problem(args):
@@ -142,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
     root = dataset_folder(args.dataset)
     if task.startswith("2d-"):
         return _run_2d(args, root, task)
-    problems = check_results(args.results, root, args.name, args.split)
+    problems = check_results(args.results, root, args.name, args.split,
+                             allow_unknown_objects=task == "6d-detection")
     if root.is_dir():  # (a missing folder is reported by check_results)
         split = eval_split(dataset_name_of(root, args.name), args.split)
         problems += check_dataset(root, args.name, splits=[split])
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
                                     "the targets it lists"))
     if any(p.severity == "error" for p in problems):
         return report(problems, f"{args.results} on {root}")
-    for p in problems:
+    for p in summarised(problems):
         print(p)
     if task == "6d-detection":
         return _run_6d_detection(args, root)
