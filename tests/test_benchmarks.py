@@ -18,6 +18,7 @@ REFERENCE = REPO / "models" / "ycbvsynth"
 TOY_RUNS = {
     "bench_synth.py": (["--images", "2", "--workers", "1", "--objects", "2", "3", "--views", "2"], "| 1 | 2 |"),
     "bench_eval.py": (["{data}", "--estimates", "10", "--repeat", "1", "--variants", "bop19"], "| 10 | bop19 |"),
+    "bench_eval_toolkit.py": (["{data}", "--noisy", "10", "--workers", "1"], "| cosy-lite eval --workers 1 |"),
     "bench_icp.py": (["--objects", "1", "--repeats", "1"], "| 1 |"),
     "bench_score_threshold.py": (["{data}", "oracle", "--thresholds", "0", "0.5", "--top-k", "0", "1"], "| 0.5 | 1 |"),
     "bench_render.py": (["--meshes", "{data}/models", "--objects", "1", "2", "--batches", "2", "--resolutions", "60x80",
