@@ -101,7 +101,7 @@ def test_broken_results_file_names_line_and_column(root: Path, capsys, name: str
         assert rc == 1 and "Traceback" not in text, text
         line = next((s for s in text.splitlines() if s.startswith(f"ERROR {where}: ")), None)
         assert line is not None and words in line, text
-    assert not (root.parent / "bad_tiny-test_eval").exists()
+    assert not (root.parent / "bad_tiny-test_eval").exists() and not Path("outputs/eval/bad_tiny-test").exists()
 
 
 def test_results_for_another_dataset_are_refused_by_eval(root: Path, capsys):

@@ -188,14 +188,15 @@ def test_low_visibility_gt_is_ignored_end_to_end(root: Path):
     assert r.scores.ap["mssd"][1] == pytest.approx(np.full(10, 51 / 101))
 
 
-def test_eval_command_6d_detection(root: Path, capsys):
+def test_eval_command_6d_detection(root: Path, capsys, monkeypatch):
     from cosy_lite.cli import main
 
     ests = [PoseEstimate(0, im, GT[im][g][0], 1.0, _gt_pose(im, g), 0.2) for im in GT for g in range(len(GT[im]))]
     csv = root.parent / "m_tiny-test.csv"
     write_results_csv(csv, ests)
+    monkeypatch.chdir(root.parent)
     assert main(["eval", "--dataset", str(root), "--results", str(csv), "--task", "6d-detection", "--no-progress"]) == 0
-    scores = json.loads((root.parent / "m_tiny-test_eval" / "scores_bop24.json").read_text())
+    scores = json.loads((root.parent / "outputs" / "eval" / "m_tiny-test" / "scores_bop24.json").read_text())
     assert scores["bop24_mAP"] == 1.0 and scores["bop25_mAP"] == 1.0 and scores["bop24_mAP_mspd"] == 1.0
     assert "bop24_mAP 1.0000" in capsys.readouterr().out
     (root / "test_targets_bop24.json").unlink()

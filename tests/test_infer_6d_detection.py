@@ -54,7 +54,7 @@ def test_6d_detection_keeps_every_detection(tiny_synth_root, ckpts, tmp_path):
     assert sum(got.values()) > sum(t.inst_count for t in ds.test_targets())
 
 
-def test_infer_and_eval_commands(tiny_synth_root, ckpts, tmp_path):
+def test_infer_and_eval_commands(tiny_synth_root, ckpts, tmp_path, monkeypatch):
     import infer
     from cosy_lite.cli import main as cli
 
@@ -63,9 +63,13 @@ def test_infer_and_eval_commands(tiny_synth_root, ckpts, tmp_path):
                      str(tmp_path), "--task", "6d-detection", "--no-progress"])
     assert rc == 0
     csv = tmp_path / "cosylite_tiny-test.csv"
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
     assert cli(["eval", "--dataset", str(tiny_synth_root), "--results", str(csv), "--task", "6d-detection",
                 "--no-progress"]) == 0
-    scores = json.loads((tmp_path / "cosylite_tiny-test_eval" / "scores_bop24.json").read_text())
+    # without --out: a results folder of the current directory, nothing beside the CSV
+    scores = json.loads((tmp_path / "elsewhere" / "outputs" / "eval" / csv.stem / "scores_bop24.json").read_text())
+    assert not (tmp_path / f"{csv.stem}_eval").exists()
     assert 0.0 <= scores["bop24_mAP"] <= 1.0
     assert scores["bop24_mAP"] == pytest.approx((scores["bop24_mAP_mssd"] + scores["bop24_mAP_mspd"]) / 2)
     assert scores["bop25_mAP"] == scores["bop24_mAP_mssd"]

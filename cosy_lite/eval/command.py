@@ -20,7 +20,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default=None, help="split folder (default: the dataset's BOP19 test split)")
     p.add_argument("--name", default=None, help="dataset name (default: the folder name)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
-                   help="where to write scores.json and recall_curves.png (default: RESULTS_STEM_eval/ beside the CSV)")
+                   help="where to write the scores (default: outputs/eval/RESULTS_STEM/ in the current folder, never beside "
+                        "the results file)")
     p.add_argument("--max-sym-disc-step", type=float, default=0.01,
                    help="discretisation step of continuous symmetries (BOP: 0.01)")
     p.add_argument("--old-toolkit-symmetries", dest="sym_zero_angle", action="store_false",
@@ -48,6 +49,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="processes computing the errors (6d-localization; the images are split between them, "
                         "the scores are the same; default: one per core, at most 4, and 1 for fewer than 20 images)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def scores_folder(results: Path) -> Path:
+    """Where ``cosy-lite eval`` writes the scores of ``results`` without ``--out``: a results folder of
+    the current directory, not the folder of the input (which may be a dataset, a checkout or read-only)."""
+    return Path("outputs") / "eval" / results.stem
 
 
 def format_table(result) -> str:
@@ -161,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
                       auc=getattr(args, "auc", False), workers=getattr(args, "workers", None))
     print(format_table(result))
-    out = args.out or args.results.with_name(args.results.stem + "_eval")
+    out = args.out or scores_folder(args.results)
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")
     plot_curves(result, out / "recall_curves.png")
     print(f"wrote {out / 'scores.json'} and {out / 'recall_curves.png'}")
@@ -177,7 +184,7 @@ def _run_6d_detection(args: argparse.Namespace, root: Path) -> int:
     result = evaluate_6d_detection(root, args.results, args.split, args.name, args.max_sym_disc_step,
                                    progress=not args.no_progress)
     print(format_6d(result))
-    out = args.out or args.results.with_name(args.results.stem + "_eval")
+    out = args.out or scores_folder(args.results)
     atomic_write_text(out / "scores_bop24.json", json.dumps(result.to_dict(), indent=1) + "\n")
     print(f"wrote {out / 'scores_bop24.json'}")
     return 0
@@ -214,7 +221,7 @@ def _run_2d(args: argparse.Namespace, root: Path, task: str) -> int:
     print(f"{task} ({ann_type}, {args.bbox_type if ann_type == 'bbox' else 'visible masks'}) of {args.results} "
           f"on {len(records)} images of {targets.name}:")
     print("  " + "  ".join(f"{k} {scores[k]:.3f}" for k in COCO_KEYS[:3] + ("AR100",)))
-    out = args.out or args.results.with_name(args.results.stem + "_eval")
+    out = args.out or scores_folder(args.results)
     name = f"scores_bop22_coco_{ann_type}" + ("_modal" if ann_type == "bbox" and args.bbox_type == "modal" else "")
     atomic_write_text(out / f"{name}.json", json.dumps(scores, indent=1) + "\n")
     print(f"wrote {out / name}.json")
