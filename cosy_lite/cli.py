@@ -64,11 +64,13 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """
     from cosy_lite.errors import run_reporting_errors
 
+    whole_process = argv is None  # the command is the process (not called from other code)
     argv = sys.argv[1:] if argv is None else list(argv)
     if prog is not None and argv and argv[0] in COMMANDS:
         args = command_parser(argv[0], prog).parse_args(argv[1:])
     else:
         args = build_parser().parse_args(argv)
+    args.whole_process = whole_process
     # Waiting OpenMP threads sleep instead of spinning (read when torch loads, so before any command
     # imports it: parsing does not): on CPUs shared with other jobs spinning threads made the
     # networks 3-8x slower (measured for infer).

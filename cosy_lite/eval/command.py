@@ -166,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_6d_detection(args, root)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
-                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None))
+                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None),
+                      load_torchvision=not getattr(args, "whole_process", False))  # nothing else runs here
     print(format_table(result))
     out = args.out or scores_folder(args.results)
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")

@@ -82,11 +82,14 @@ class WindowDepthRenderer:
     Args:
         meshes: obj_id -> (vertices [N,3] m, faces [F,3] int); uploaded on first use, once.
         width, height: image size (px).
+        load_torchvision: see :class:`~cosy_lite.render.gl.EglContext` (False only in a process
+            that never imports torchvision: ~2 s less to start).
     The GL context is created on the first render, in the process that renders. Use as a context
     manager, or call :meth:`close` (which leaves the other renderers of the process working).
     """
 
-    def __init__(self, meshes: dict[int, tuple[np.ndarray, np.ndarray]], width: int, height: int):
+    def __init__(self, meshes: dict[int, tuple[np.ndarray, np.ndarray]], width: int, height: int,
+                 load_torchvision: bool = True):
         import trimesh
 
         from cosy_lite.render.renderer import GlRenderer
@@ -103,7 +106,7 @@ class WindowDepthRenderer:
             lo, hi = v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64)
             self._corners[int(obj_id)] = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
         # Two-sided, as the toolkit: no back-face culling, whatever the mesh.
-        self._renderer = GlRenderer(models, cull_back_faces=False)
+        self._renderer = GlRenderer(models, cull_back_faces=False, load_torchvision=load_torchvision)
 
     def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
         """Depth [h,w] float32 (m, 0 = background) of object ``obj_id`` at ``TCO`` [4,4] inside ``window``.
@@ -111,21 +114,32 @@ class WindowDepthRenderer:
         ``K`` [3,3] is the full image's intrinsics; the result equals ``full[y0:y1, x0:x1]`` of a
         full-image render wherever the object's projection lies inside the window.
         """
-        if obj_id not in self._corners:
-            raise KeyError(f"no mesh for obj_id {obj_id}; known: {sorted(self._corners)}")
-        if window.empty:
-            return np.zeros(window.shape, np.float32)
-        if window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height:
-            raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
-        TCO = np.asarray(TCO, dtype=np.float64)
-        z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
-        if z.max() <= NEAR_MIN_M:
-            return np.zeros(window.shape, np.float32)
-        # Clipping planes around the object's bounding box (as the toolkit), with room to spare.
-        near = max(NEAR_MIN_M, 0.5 * float(z.min()))
-        far = 2.0 * float(z.max()) + 0.01
-        return self._renderer.render_depth_window(obj_id, TCO, K, (self.height, self.width),
-                                                  (window.x0, window.y0, window.x1, window.y1), near, far)
+        return self.render_many([(obj_id, TCO, window)], K)[0]
+
+    def render_many(self, items: list[tuple[int, np.ndarray, Window]], K: np.ndarray) -> list[np.ndarray]:
+        """:meth:`render` of every ``(obj_id, TCO, window)``, drawn as one batch (the same pixels)."""
+        from cosy_lite.render.renderer import DepthWindow
+
+        out: list[np.ndarray | None] = []
+        batch: list[DepthWindow] = []
+        for obj_id, TCO, window in items:
+            if obj_id not in self._corners:
+                raise KeyError(f"no mesh for obj_id {obj_id}; known: {sorted(self._corners)}")
+            if window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height:
+                if not window.empty:
+                    raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
+            TCO = np.asarray(TCO, dtype=np.float64)
+            z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
+            if window.empty or z.max() <= NEAR_MIN_M:
+                out.append(np.zeros(window.shape, np.float32))
+                continue
+            # Clipping planes around the object's bounding box (as the toolkit), with room to spare.
+            near = max(NEAR_MIN_M, 0.5 * float(z.min()))
+            far = 2.0 * float(z.max()) + 0.01
+            out.append(None)
+            batch.append(DepthWindow(obj_id, TCO, (window.x0, window.y0, window.x1, window.y1), near, far))
+        drawn = iter(self._renderer.render_depth_windows(batch, K, (self.height, self.width)) if batch else [])
+        return [next(drawn) if d is None else d for d in out]
 
     def close(self) -> None:
         """Free this renderer's GL context (idempotent); other renderers of the process keep theirs."""

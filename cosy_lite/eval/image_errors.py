@@ -118,10 +118,29 @@ class ImageErrors:
     def _render(self, key: tuple, obj_id: int, obj: ObjectErrors, TCO: np.ndarray) -> tuple[Window, np.ndarray]:
         """Window and float64 distance map of one pose (cached under ``key``)."""
         if key not in self._rendered:
-            r = self.renderer
-            win = object_window(obj.hull, TCO, self.K, r.width, r.height)
-            self._rendered[key] = (win, distance_map(r.render(obj_id, TCO, self.K, win), self.K, win))
+            self._render_batch([(key, obj_id, obj, TCO)])
         return self._rendered[key]
+
+    def _render_batch(self, poses: list[tuple[tuple, int, ObjectErrors, np.ndarray]]) -> None:
+        """Render ``(key, obj_id, obj, TCO)`` poses not yet cached, as one batch of the renderer."""
+        r = self.renderer
+        todo = [(key, obj_id, object_window(obj.hull, TCO, self.K, r.width, r.height), TCO)
+                for key, obj_id, obj, TCO in dict((p[0], p) for p in poses).values() if key not in self._rendered]
+        depths = r.render_many([(obj_id, TCO, win) for _, obj_id, win, TCO in todo], self.K)
+        for (key, _, win, _), depth in zip(todo, depths):
+            self._rendered[key] = (win, distance_map(depth, self.K, win))
+
+    def prefetch(self, targets: list[tuple[int, ObjectErrors, list[PoseEstimate], list[np.ndarray], list[int]]]) -> None:
+        """Render, as one batch, every pose that :meth:`target` of these ``(obj_id, obj, ests,
+        gt_TCO, gt_keys)`` will need for VSD (those of the pairs whose bounding spheres overlap)."""
+        poses = []
+        for obj_id, obj, ests, gt_TCO, gt_keys in targets:
+            radius = 0.5 * obj.diameter
+            for T_gt, gkey in zip(gt_TCO, gt_keys):
+                for e, est in enumerate(ests):
+                    if pose_errors.sphere_projections_overlap(radius, est.TCO[:3, 3], T_gt[:3, 3]):
+                        poses += [(("est", obj_id, e), obj_id, obj, est.TCO), (("gt", gkey), obj_id, obj, T_gt)]
+        self._render_batch(poses)
 
     def target(self, obj_id: int, obj: ObjectErrors, ests: list[PoseEstimate], gt_TCO: list[np.ndarray],
                gt_keys: list[int], pending: list[Future] | None = None) -> PairErrors:

@@ -71,9 +71,11 @@ class EglContext:
 
     Args:
         device_index: EGL device (GPU) index; default: ``$EGL_DEVICE_ID`` (pyrender's variable) or 0.
+        load_torchvision: import torchvision first (see below; ~2 s). False only in a process that
+            never imports it (the evaluator's): importing torchvision after the first render crashes.
     """
 
-    def __init__(self, device_index: int | None = None):
+    def __init__(self, device_index: int | None = None, load_torchvision: bool = True):
         global _EGL_PID
         if _EGL_PID is not None and _EGL_PID != os.getpid():
             raise RuntimeError(
@@ -85,10 +87,11 @@ class EglContext:
         # torchvision must be loaded before Mesa's EGL: importing it after the first render crashed the
         # process (its LLVM clashed with llvmpipe's; measured here). Without torch (an onnxruntime-only
         # deployment) there is nothing to guard against.
-        try:
-            import torchvision  # noqa: F401
-        except ImportError:
-            pass
+        if load_torchvision:
+            try:
+                import torchvision  # noqa: F401
+            except ImportError:
+                pass
         from pyrender.platforms import egl
 
         if device_index is None:

@@ -46,6 +46,19 @@ if TYPE_CHECKING:
 Resolution = tuple[int, int]  # (H, W) pixels
 CULL_CHECK_SIZE = 64  # px, side of the 14 views rendered to decide whether a mesh may be back-face culled
 MAX_IN_FLIGHT_PIXELS = 1 << 22  # crops drawn before read-back hold at most this many pixels (12 B each)
+WINDOW_BATCH = 16  # depth windows drawn before read-back (one full-image framebuffer each)
+
+
+@dataclass(frozen=True)
+class DepthWindow:
+    """One item of :meth:`GlRenderer.render_depth_windows`: object, pose [4,4] (m), window
+    (x0, y0, x1, y1) in image pixels, clipping planes (m; None: the renderer's)."""
+
+    obj_id: int
+    TCO: Any
+    window: tuple[int, int, int, int]
+    znear: float | None = None
+    zfar: float | None = None
 
 
 @dataclass
@@ -250,7 +263,7 @@ layout(location = 1) out float depth;""" + _SHADE + """
 void main() { color = shade(v_attribute); depth = v_z; }
 """,
 }
-# The evaluator's window depth (see _window_depth_pass): P and MV apart, as the BOP toolkit's renderer.
+# The evaluator's window depth (see _window_depth_draw): P and MV apart, as the BOP toolkit's renderer.
 _WINDOW_VERTEX_SHADER = """#version 330 core
 layout(location = 0) in vec3 position;
 uniform mat4 P;   // clip <- camera, window y = H - v
@@ -293,10 +306,10 @@ class _GlState:
     framebuffers: dict[Resolution, list[_Framebuffer]] = field(default_factory=dict)  # one per crop in flight
 
 
-def _create_gl_state(device_index: int | None) -> _GlState:
+def _create_gl_state(device_index: int | None, load_torchvision: bool = True) -> _GlState:
     from cosy_lite.render.gl import EglContext
 
-    context = EglContext(device_index)  # first: selects EGL before PyOpenGL is imported
+    context = EglContext(device_index, load_torchvision)  # first: selects EGL before PyOpenGL is imported
     from OpenGL import GL as gl
     from OpenGL.GL import shaders
 
@@ -436,6 +449,7 @@ class GlRenderer:
         cull_back_faces: bool | None = None,
         device_index: int | None = None,
         shading: str = "flat",
+        load_torchvision: bool = True,
     ):
         if meshes is None and models_dir is None:
             raise ValueError("GlRenderer needs meshes or a models_dir")
@@ -450,6 +464,7 @@ class GlRenderer:
         self.max_in_flight = int(max_in_flight)
         self.cull_back_faces = cull_back_faces
         self.device_index = device_index
+        self.load_torchvision = load_torchvision
         self._gl: _GlState | None = None
         self._lock = threading.Lock()
 
@@ -528,33 +543,47 @@ class GlRenderer:
         image costs little; the projection is the full image's, so the pixels are exactly those of a
         full-image render. ``znear``, ``zfar`` (m): clipping planes of this call (default: the
         renderer's); planes tight around the object give the depth test its finest resolution.
-        Rasterised as the BOP toolkit's renderer (see :func:`_window_depth_pass`): two-sided; the
+        Rasterised as the BOP toolkit's renderer (see :func:`_window_depth_draw`): two-sided; the
         pixels of :meth:`render`, their depth up to the rounding of the float32 vertex transforms
         (largest on grazing triangles). The object is drawn even if its origin is behind the camera
-        (unlike :meth:`render`).
+        (unlike :meth:`render`). :meth:`render_depth_windows` draws many at once.
         """
-        TCO = _as_numpy(TCO)
-        if TCO.shape != (4, 4):
-            raise ValueError(f"TCO must be [4,4], got shape {TCO.shape}")
-        ids, TCO, K, (H, W) = check_render_inputs([obj_id], TCO[None], K, resolution)
-        x0, y0, x1, y1 = (int(v) for v in window)
-        depth = np.zeros((1, max(0, y1 - y0), max(0, x1 - x0)), dtype=np.float32)
-        if depth.size == 0:
-            return depth[0]
-        if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
-            raise ValueError(f"window {tuple(window)} (x0, y0, x1, y1) is not inside the {W}x{H} image")
-        znear = self.znear if znear is None else float(znear)
-        zfar = self.zfar if zfar is None else float(zfar)
-        if not 0 < znear < zfar:
-            raise ValueError(f"need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
-        self.mesh(ids[0])  # an unknown id fails before any GL work
-        P = projection_matrices(K, (H, W), znear, zfar, y_up=True)[0]
-        with self._gl_current() as gls:
-            mesh = self._gpu_mesh(gls, ids[0])
-            _check_size(gls, (H, W))
-            _window_depth_pass(gls, self._framebuffers(gls, (H, W), 1)[0], mesh, P, TCO[0], (H, W),
-                               (x0, y0, x1, y1), depth[0])
-        return depth[0]
+        return self.render_depth_windows([DepthWindow(obj_id, TCO, window, znear, zfar)], K, resolution)[0]
+
+    def render_depth_windows(self, items: Sequence[DepthWindow], K: Any, resolution: Resolution) -> list[np.ndarray]:
+        """:meth:`render_depth_window` of every item, the same pixels, drawn in batches: each item
+        into its own framebuffer, a batch drawn before any of it is read back, so that llvmpipe's
+        rasterizer threads work on one item while this thread prepares the next."""
+        prepared = []
+        for item in items:
+            TCO = _as_numpy(item.TCO)
+            if TCO.shape != (4, 4):
+                raise ValueError(f"TCO must be [4,4], got shape {TCO.shape}")
+            ids, TCO, K_, (H, W) = check_render_inputs([item.obj_id], TCO[None], K, resolution)
+            x0, y0, x1, y1 = (int(v) for v in item.window)
+            depth = np.zeros((max(0, y1 - y0), max(0, x1 - x0)), dtype=np.float32)
+            if depth.size and (x0 < 0 or y0 < 0 or x1 > W or y1 > H):
+                raise ValueError(f"window {tuple(item.window)} (x0, y0, x1, y1) is not inside the {W}x{H} image")
+            znear = self.znear if item.znear is None else float(item.znear)
+            zfar = self.zfar if item.zfar is None else float(item.zfar)
+            if not 0 < znear < zfar:
+                raise ValueError(f"need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
+            self.mesh(ids[0])  # an unknown id fails before any GL work
+            P = projection_matrices(K_, (H, W), znear, zfar, y_up=True)[0]
+            prepared.append((ids[0], P, TCO[0], (x0, y0, x1, y1), depth))
+        todo = [q for q in prepared if q[4].size]
+        if todo:
+            res = tuple(int(v) for v in resolution)
+            with self._gl_current() as gls:
+                _check_size(gls, res)
+                for start in range(0, len(todo), WINDOW_BATCH):
+                    batch = todo[start:start + WINDOW_BATCH]
+                    fbs = self._framebuffers(gls, res, len(batch))
+                    for fb, (obj_id, P, MV, window, _) in zip(fbs, batch):
+                        _window_depth_draw(gls, fb, self._gpu_mesh(gls, obj_id), P, MV, res, window)
+                    for fb, (_, _, _, window, depth) in zip(fbs, batch):
+                        _window_depth_read(fb, res, window, depth)
+        return [q[4] for q in prepared]
 
     def render_tensors(
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution,
@@ -588,7 +617,7 @@ class GlRenderer:
                 # eglTerminate, destroying every context of the process): start again.
                 self._gl.context.destroy()
                 self._gl = None
-        self._gl = _create_gl_state(self.device_index)  # current on creation; meshes re-uploaded lazily
+        self._gl = _create_gl_state(self.device_index, self.load_torchvision)  # current on creation; meshes re-uploaded lazily
         return self._gl
 
     def _gpu_mesh(self, gls: _GlState, obj_id: int) -> _GpuMesh:
@@ -708,26 +737,25 @@ def _render_pass(
             _read_into(gl.GL_COLOR_ATTACHMENT0, (0, 0, W, H), gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb[j])
 
 
-def _window_depth_pass(
+def _window_depth_draw(
     gls: _GlState, fb: _Framebuffer, mesh: _GpuMesh, P: np.ndarray, MV: np.ndarray, resolution: Resolution,
-    window: tuple[int, int, int, int], out: np.ndarray,
+    window: tuple[int, int, int, int],
 ) -> None:
-    """Depth of ``mesh`` inside ``window`` (x0, y0, x1, y1) of an (H, W) image into ``out`` [y1 - y0, x1 - x0].
+    """Draw the depth of ``mesh`` inside ``window`` (x0, y0, x1, y1) of an (H, W) image into ``fb``.
 
     Rasterised as the BOP toolkit's renderer (the evaluator's results are those of this pass):
     window y = H - v (``P`` from :func:`~cosy_lite.render.gl.projection_matrices` with
     ``y_up=True``), clip = P (MV p) and camera z = (MV p).z in the shader (``MV`` = TCO), two-sided.
-    Only the window is cleared, drawn (a scissor) and read back.
+    Only the window is cleared and drawn (a scissor); :func:`_window_depth_read` reads it back.
     """
     from OpenGL import GL as gl
 
     H, W = resolution
     x0, y0, x1, y1 = window
-    gl_window = (x0, H - y1, x1, H - y0)  # GL rows count from the bottom
     gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fb.fbo)
     gl.glDrawBuffers(2, [gl.GL_NONE, gl.GL_COLOR_ATTACHMENT1])
     gl.glViewport(0, 0, W, H)
-    gl.glScissor(x0, H - y1, x1 - x0, y1 - y0)  # = gl_window
+    gl.glScissor(x0, H - y1, x1 - x0, y1 - y0)  # GL rows count from the bottom
     gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
     gl.glUseProgram(gls.programs["window_depth"])
     gl.glDisable(gl.GL_CULL_FACE)
@@ -737,7 +765,17 @@ def _window_depth_pass(
     gl.glBindVertexArray(mesh.vao)
     gl.glDrawElements(gl.GL_TRIANGLES, mesh.n_indices, gl.GL_UNSIGNED_INT, None)
     gl.glBindVertexArray(0)
-    _read_into(gl.GL_COLOR_ATTACHMENT1, gl_window, gl.GL_RED, gl.GL_FLOAT, out)
+
+
+def _window_depth_read(fb: _Framebuffer, resolution: Resolution, window: tuple[int, int, int, int],
+                       out: np.ndarray) -> None:
+    """The depth drawn by :func:`_window_depth_draw` into ``fb`` -> ``out`` [y1 - y0, x1 - x0], image rows."""
+    from OpenGL import GL as gl
+
+    H = resolution[0]
+    x0, y0, x1, y1 = window
+    gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fb.fbo)
+    _read_into(gl.GL_COLOR_ATTACHMENT1, (x0, H - y1, x1, H - y0), gl.GL_RED, gl.GL_FLOAT, out)
     out[:] = out[::-1].copy()  # bottom-up GL rows -> image rows
 
 
