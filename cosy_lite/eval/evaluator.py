@@ -135,7 +135,7 @@ class _ImageEvaluation:
     the same arguments in every process that runs it."""
 
     def __init__(self, dataset_root: str | Path, results_csv: str | Path, split: str | None, name: str | None,
-                 max_sym_disc_step: float, sym_zero_angle: bool, visib_gt_min: float, auc: bool,
+                 max_sym_disc_step: float, sym_zero_angle: bool, visib_gt_min: float, auc: bool, *,
                  load_torchvision: bool = True):
         from cosy_lite.bop.params import DATASETS
 

@@ -573,7 +573,7 @@ class GlRenderer:
             prepared.append((ids[0], P, TCO[0], (x0, y0, x1, y1), depth))
         todo = [q for q in prepared if q[4].size]
         if todo:
-            res = tuple(int(v) for v in resolution)
+            res = (int(resolution[0]), int(resolution[1]))
             with self._gl_current() as gls:
                 _check_size(gls, res)
                 for start in range(0, len(todo), WINDOW_BATCH):
