@@ -131,7 +131,7 @@ def test_a_reference_sets_meshes_come_from_the_package(tmp_path, monkeypatch):
     written once from the installed package into the cache (it stopped: "no models_info.json")."""
     from cosy_lite.errors import BopFormatError
     from cosy_lite.inference.command_predict import _reference_meshes
-    from cosy_lite.synth.objects import library_models
+    from cosy_lite.synth.library_meshes import library_models
 
     monkeypatch.setenv("COSY_LITE_DATA", str(tmp_path / "data"))
     monkeypatch.setenv("COSY_LITE_CACHE", str(tmp_path / "cache"))

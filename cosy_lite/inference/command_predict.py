@@ -113,7 +113,7 @@ def models_folder(name_or_dir: str) -> Path:
 
 def _reference_meshes(name: str) -> Path:
     """The ``models/`` folder of the objects of the reference set ``name`` (its dataset's meshes)."""
-    from cosy_lite.synth.objects import library_models
+    from cosy_lite.synth.library_meshes import library_models
     from cosy_lite.weights.reference_models import reference_models
 
     return library_models(reference_models(name).dataset)

@@ -25,7 +25,7 @@ from collections.abc import Sized
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Any, Callable, Protocol, cast
 
 import torch
 from torch.utils.data import DataLoader, Dataset
@@ -227,6 +227,17 @@ def _step(task: TrainTask, train_model: torch.nn.Module, model: torch.nn.Module,
     return losses
 
 
+def _validate_and_log(task: TrainTask, model: torch.nn.Module, device: torch.device, log: RunLog, step: int,
+                      write: Callable[[str], None]) -> tuple[dict[str, float], float]:
+    """Validate ``model``, log and write the metrics; returns them and the seconds this took (the
+    validation and its log line: kept free at the end of a time budget)."""
+    t_val = time.perf_counter()
+    metrics = _validate(task, model, device)
+    log.validation(step, metrics)
+    write(f"step {step}: " + ", ".join(f"{k} {v:.4g}" for k, v in metrics.items()))
+    return metrics, time.perf_counter() - t_val
+
+
 def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | Path, config: dict[str, Any],
           resume: bool = False, progress: bool = True, init: str | Path | None = None) -> TrainSummary:
     """Train ``task``'s model; ``config`` is the full config (stored in checkpoints, checked on resume).
@@ -265,10 +276,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
     last_val: dict[str, float] = {}
     val_seconds = save_seconds = 0.0  # the last validation's and checkpoint's: kept free at the end of a budget
     if loop.val_at_start and loop.val_every > 0 and run.step == 0 and dist.is_main:
-        t_val = time.perf_counter()
-        log.validation(0, first_val := _validate(task, train_model, device))
-        val_seconds = time.perf_counter() - t_val
-        print("step 0: " + ", ".join(f"{k} {v:.4g}" for k, v in first_val.items()), flush=True)
+        _, val_seconds = _validate_and_log(task, train_model, device, log, 0, lambda text: print(text, flush=True))
     bar = _progress_bar(task.kind, loop, run, progress and dist.is_main)
     run.t_start = t_interval = time.perf_counter()
     train_model.train()
@@ -289,11 +297,7 @@ def train(task: TrainTask, loop: LoopConfig, optim: OptimConfig, out_dir: str | 
             bar.set_postfix(step=run.step, loss=f"{last_losses['total']:.4g}", items_s=f"{rate:.1f}")
             t_interval = time.perf_counter()
         if loop.val_every > 0 and (run.step % loop.val_every == 0 or run.step == loop.steps or stop) and dist.is_main:
-            t_val = time.perf_counter()
-            last_val = _validate(task, model, device)
-            val_seconds = time.perf_counter() - t_val
-            log.validation(run.step, last_val)
-            bar.write(f"step {run.step}: " + ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
+            last_val, val_seconds = _validate_and_log(task, model, device, log, run.step, bar.write)
         if (run.step % loop.checkpoint_every == 0 or run.step == loop.steps or stop) and dist.is_main:
             t_save = time.perf_counter()
             save_run(ckpt_path, task.kind, model, optimizer, config, run, task.checkpoint_meta(), log.state(),
