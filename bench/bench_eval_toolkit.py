@@ -148,9 +148,9 @@ def compare(args: argparse.Namespace) -> int:
         if with_toolkit:
             s, ar = run_toolkit(args.toolkit, args.toolkit_python, args.dataset, args.results, args.toolkit_dataset,
                                 args.toolkit_workers, args.toolkit_scene_offset)
-            times[f"toolkit eval_bop19_pose.py ({args.toolkit_workers} workers)"] = [
-                *times.get(f"toolkit eval_bop19_pose.py ({args.toolkit_workers} workers)", []), s]
-            ars[f"toolkit eval_bop19_pose.py ({args.toolkit_workers} workers)"] = ar
+            name = f"toolkit eval_bop19_pose.py ({args.toolkit_workers} workers)"
+            times.setdefault(name, []).append(s)
+            ars[name] = ar
     toolkit_best = min((min(v) for k, v in times.items() if k.startswith("toolkit")), default=None)
     print(f"\n{args.results.name} on {args.dataset} (best of {args.repeat}; load {os.getloadavg()[0]:.2f})\n")
     print("| evaluator | wall s | toolkit / this | AR |")

@@ -268,3 +268,13 @@ def test_command_check_results(tmp_path: Path, capsys):
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith(f"ERROR {bad} [line 2: t]: t looks like metres")
     assert lines[-1].endswith("1 errors, 0 warnings")
+
+
+def test_warnings_of_one_kind_are_one_line():
+    from cosy_lite.bop.validate import Problem, summarised
+
+    problems = [Problem("a.csv", f"line {n}: row", f"identical to line {n - 1}", "warning") for n in (3, 5, 9)]
+    problems.insert(1, Problem("a.csv", "line 4: score", "not a number", "error"))
+    lines = [str(p) for p in summarised(problems)]
+    assert lines == ["WARNING a.csv [line 3: row]: identical to line 2 (and 2 more like it: line 5: row; line 9: row)",
+                     "ERROR a.csv [line 4: score]: not a number"]

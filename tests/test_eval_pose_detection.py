@@ -248,12 +248,3 @@ def test_eval_command_6d_detection_scores_unknown_object_ids_as_the_toolkit(root
     assert main(["eval", "--dataset", str(root), "--results", str(csv), "--no-progress"]) == 1
     assert "obj_id 7 is not in" in capsys.readouterr().out
 
-
-def test_warnings_of_one_kind_are_one_line():
-    from cosy_lite.bop.validate import Problem, summarised
-
-    problems = [Problem("a.csv", f"line {n}: row", f"identical to line {n - 1}", "warning") for n in (3, 5, 9)]
-    problems.insert(1, Problem("a.csv", "line 4: score", "not a number", "error"))
-    lines = [str(p) for p in summarised(problems)]
-    assert lines == ["WARNING a.csv [line 3: row]: identical to line 2 (and 2 more like it: line 5: row; line 9: row)",
-                     "ERROR a.csv [line 4: score]: not a number"]

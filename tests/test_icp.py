@@ -278,9 +278,10 @@ def test_an_icp_result_that_agrees_less_than_its_start_is_rejected(renderer):
     cfg = IcpConfig()
     windows, rendered = [], {}
     for i, o in enumerate([MUSTARD, DRILL]):
-        from cosy_lite.inference.icp import _box_corners, _mask_box
+        from cosy_lite.geometry.depth import mask_box
+        from cosy_lite.inference.icp import _box_corners
 
-        windows.append(_window(starts[i], K, _box_corners(renderer.mesh(o)), _mask_box(masks[i]), SIZE, cfg.window_margin))
+        windows.append(_window(starts[i], K, _box_corners(renderer.mesh(o)), mask_box(masks[i]), SIZE, cfg.window_margin))
         x0, y0, x1, y1 = windows[i]
         Kc = K.copy()
         Kc[0, 2] -= x0

@@ -213,7 +213,7 @@ def _run_2d(args: argparse.Namespace, root: Path, task: str) -> int:
         return report(problems, f"{args.results} on {root}")
     dataset = BopDataset(root) if args.name is None else BopDataset(root, args.name)
     image_targets = load_image_targets(targets)
-    scene_rank = {t.scene_id: k for k, t in reversed(list(enumerate(image_targets)))}
+    scene_rank = {s: k for k, s in enumerate(dict.fromkeys(t.scene_id for t in image_targets))}
     # the toolkit's image order: scenes as the targets list them, images ascending (ties across images)
     keys = sorted({(t.scene_id, t.im_id) for t in image_targets}, key=lambda k: (scene_rank[k[0]], k[1]))
     records = [dataset.image(split, scene_id, im_id) for scene_id, im_id in keys]

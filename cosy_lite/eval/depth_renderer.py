@@ -125,9 +125,9 @@ class WindowDepthRenderer:
         for obj_id, TCO, window in items:
             if obj_id not in self._corners:
                 raise KeyError(f"no mesh for obj_id {obj_id}; known: {sorted(self._corners)}")
-            if window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height:
-                if not window.empty:
-                    raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
+            outside = window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height
+            if outside and not window.empty:
+                raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
             TCO = np.asarray(TCO, dtype=np.float64)
             z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
             if window.empty or z.max() <= NEAR_MIN_M:

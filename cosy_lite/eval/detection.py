@@ -33,6 +33,7 @@ from cosy_lite.bop.detections import (
     read_detections_json,
 )
 from cosy_lite.errors import BopFormatError
+from cosy_lite.geometry.depth import mask_box
 
 VISIB_IGNORE = 0.1  # toolkit: GT less visible than this gets the ignore flag
 BBOX_TYPES = ("modal", "amodal")
@@ -57,11 +58,13 @@ class DetectionScores:
     n_detections: int
 
 
-def mask_box(mask: np.ndarray) -> list[int]:
-    """The tight box ``[x, y, w, h]`` of a non-empty ``[H,W]`` mask, its last row and column included
-    (the toolkit's ``pycoco_utils.bbox_from_binary_mask``)."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    return [int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)]
+def _coco_box(mask: np.ndarray) -> list[float]:
+    """COCO's ``[x, y, w, h]`` of a non-empty mask, its last row and column included (the toolkit's
+    ``pycoco_utils.bbox_from_binary_mask``)."""
+    box = mask_box(mask)
+    assert box is not None
+    x0, y0, x1, y1 = box
+    return [float(x0), float(y0), float(x1 - x0), float(y1 - y0)]
 
 
 def coco_ground_truth(dataset, records: Iterable, bbox_type: str = "modal") -> tuple[dict[str, Any], dict[ImageKey, int]]:
@@ -95,7 +98,7 @@ def coco_ground_truth(dataset, records: Iterable, bbox_type: str = "modal") -> t
                 continue
             annotations.append({
                 "id": len(annotations) + 1, "image_id": index[key], "category_id": int(gt.obj_id), "iscrowd": 0,
-                "area": int(mask.sum()), "bbox": [float(v) for v in mask_box(box_mask)],
+                "area": int(mask.sum()), "bbox": _coco_box(box_mask),
                 "segmentation": mask_to_rle(mask), "ignore": int(info.visib_fract < VISIB_IGNORE),
             })
         if size is None:
@@ -124,7 +127,7 @@ def _keep_ignore_flags(ev) -> None:
         prepare()
         for gts in ev._gts.values():
             for g in gts:
-                g["ignore"] = flags[g["id"]] or bool(g["iscrowd"])
+                g["ignore"] = flags[g["id"]]
 
     ev._prepare = _prepare
 
@@ -152,7 +155,7 @@ def _coco_eval(gt: dict[str, Any], results: list[dict[str, Any]], iou_type: str)
 def _toolkit_order(entries: list[dict[str, Any]], scene_order: list[int]) -> list[dict[str, Any]]:
     """``entries`` grouped by scene in the order the targets list the scenes, file order within a
     scene: the order in which ``eval_bop22_coco.py`` hands the results to pycocotools."""
-    rank = {s: k for k, s in reversed(list(enumerate(scene_order)))}
+    rank = {s: k for k, s in enumerate(dict.fromkeys(scene_order))}
     return sorted(entries, key=lambda e: rank[e["scene_id"]])
 
 

@@ -79,6 +79,15 @@ def _model_errors(obj: ObjectErrors, T_est: np.ndarray, gt_TCO: list[np.ndarray]
             out.adi[:, g] = obj.adi(T_est, T_gt, cap=AUC_MAX_M)
 
 
+def _vsd_pairs(obj_id: int, obj: ObjectErrors, T_est: list[np.ndarray], gt_TCO: list[np.ndarray],
+               gt_keys: list[int]) -> list[tuple[int, int, tuple, tuple]]:
+    """(e, g, render key of estimate e, of GT g) of the pairs whose VSD is computed: those whose
+    bounding spheres' projections overlap (the toolkit's shortcut; VSD is 1 elsewhere), GT-major."""
+    radius = 0.5 * obj.diameter
+    return [(e, g, ("est", obj_id, e), ("gt", gkey)) for g, (T_gt, gkey) in enumerate(zip(gt_TCO, gt_keys))
+            for e, T_e in enumerate(T_est) if pose_errors.sphere_projections_overlap(radius, T_e[:3, 3], T_gt[:3, 3])]
+
+
 def _paste(dist: np.ndarray, src: Window, dst: Window) -> np.ndarray:
     """``dist`` of window ``src`` placed in a zero map of window ``dst`` (which contains ``src``)."""
     out = np.zeros(dst.shape)
@@ -135,11 +144,9 @@ class ImageErrors:
         gt_TCO, gt_keys)`` will need for VSD (those of the pairs whose bounding spheres overlap)."""
         poses = []
         for obj_id, obj, ests, gt_TCO, gt_keys in targets:
-            radius = 0.5 * obj.diameter
-            for T_gt, gkey in zip(gt_TCO, gt_keys):
-                for e, est in enumerate(ests):
-                    if pose_errors.sphere_projections_overlap(radius, est.TCO[:3, 3], T_gt[:3, 3]):
-                        poses += [(("est", obj_id, e), obj_id, obj, est.TCO), (("gt", gkey), obj_id, obj, T_gt)]
+            T_est = [e.TCO for e in ests]
+            for e, g, key_e, key_g in _vsd_pairs(obj_id, obj, T_est, gt_TCO, gt_keys):
+                poses += [(key_e, obj_id, obj, T_est[e]), (key_g, obj_id, obj, gt_TCO[g])]
         self._render_batch(poses)
 
     def target(self, obj_id: int, obj: ObjectErrors, ests: list[PoseEstimate], gt_TCO: list[np.ndarray],
@@ -161,11 +168,8 @@ class ImageErrors:
                if self.executor else None)
         if job is None:
             _model_errors(obj, T_est, gt_TCO, self.K, out, self.add_adi)
-        radius = 0.5 * obj.diameter
-        for g, (T_gt, gkey) in enumerate(zip(gt_TCO, gt_keys)):
-            for e in range(E):
-                if pose_errors.sphere_projections_overlap(radius, T_est[e, :3, 3], T_gt[:3, 3]):
-                    out.vsd[e, g] = self._vsd(obj_id, obj, ("est", obj_id, e), T_est[e], ("gt", gkey), T_gt)
+        for e, g, key_e, key_g in _vsd_pairs(obj_id, obj, list(T_est), gt_TCO, gt_keys):
+            out.vsd[e, g] = self._vsd(obj_id, obj, key_e, T_est[e], key_g, gt_TCO[g])
         if job is not None:
             if pending is None:
                 job.result()

@@ -34,6 +34,15 @@ def visibility_mask_est(dist_test: np.ndarray, dist_est: np.ndarray, visib_gt: n
     return np.logical_or(visib, np.logical_and(visib_gt, dist_est > 0))
 
 
+def mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Half-open (x0, y0, x1, y1) of a boolean [H,W] mask (x1 = its last column + 1), None if empty;
+    as ``[x0, y0, x1 - x0, y1 - y0]`` it is COCO's box of the mask (the BOP toolkit's ``bbox_from_binary_mask``)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
 def bbox_from_mask(mask: np.ndarray) -> list[int]:
     """[x, y, w, h] of a boolean mask as the BOP toolkit computes it (w = x_max - x_min); [-1]*4 if empty."""
     ys, xs = np.nonzero(mask)

@@ -39,6 +39,8 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
+from cosy_lite.geometry.depth import mask_box as mask_box_of
+
 if TYPE_CHECKING:
     import open3d as o3d
     import trimesh
@@ -189,14 +191,6 @@ def _window(TCO: np.ndarray, K: np.ndarray, corners: np.ndarray, mask_box: tuple
     return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
 
 
-def _mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """Half-open (x0, y0, x1, y1) of a boolean mask, None if empty."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if len(rows) == 0:
-        return None
-    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
-
-
 def _cloud(points: np.ndarray, voxel_size: float) -> o3d.geometry.PointCloud:
     import open3d as o3d
 
@@ -279,7 +273,7 @@ def refine_poses_icp(
     results: list[IcpResult | None] = [None] * N
     windows: list[tuple[int, int, int, int] | None] = [None] * N
     for i in range(N):
-        mask_box = _mask_box(masks[i])
+        mask_box = mask_box_of(masks[i])
         if mask_box is None:
             results[i] = IcpResult(TCO[i].copy(), False, "empty mask")
         elif TCO[i, 2, 3] <= 0:
@@ -363,7 +357,7 @@ def depth_agreement(
     scores = np.zeros(len(obj_ids))
     windows: dict[int, tuple[int, int, int, int]] = {}
     for i in range(len(obj_ids)):
-        mask_box = _mask_box(masks[i])
+        mask_box = mask_box_of(masks[i])
         if mask_box is not None and TCO[i, 2, 3] > 0:
             win = _window(TCO[i], K, _box_corners(renderer.mesh(obj_ids[i])), mask_box, (H, W), window_margin)
             if win is not None:

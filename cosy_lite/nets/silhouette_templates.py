@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 import cv2
 import numpy as np
 
+from cosy_lite.geometry.depth import mask_box
+
 if TYPE_CHECKING:
     from cosy_lite.render.renderer import Renderer
 
@@ -65,9 +67,8 @@ def mask_boxes(masks: np.ndarray) -> np.ndarray:
     NaN for an empty mask."""
     out = np.full((len(masks), 4), np.nan)
     for i, m in enumerate(masks):
-        cols, rows = np.flatnonzero(m.any(axis=0)), np.flatnonzero(m.any(axis=1))
-        if len(cols):
-            out[i] = (cols[0], rows[0], cols[-1] + 1, rows[-1] + 1)
+        if (box := mask_box(m)) is not None:
+            out[i] = box
     return out
 
 
