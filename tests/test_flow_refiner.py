@@ -222,3 +222,124 @@ def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
     # to 4 crops may drift in depth; that was this test's coin toss (0.0284 against 0.0261 once).
     assert bool((e1.adds_m < e0.adds_m).all()) and e1.adds_m.mean() < 0.6 * e0.adds_m.mean(), (e0.adds_m, e1.adds_m)
     assert e1.rot_deg.median() < 0.5 * e0.rot_deg.median(), (e0.rot_deg, e1.rot_deg)
+
+
+def test_depth_head_starts_at_zero_reaches_every_parameter_and_exports(tmp_path):
+    pytest.importorskip("onnxruntime")
+    import onnxruntime as ort
+
+    torch.manual_seed(0)
+    net = FlowPoseNet(pretrained=False, radius=2, descriptor=16, depth_head=True).eval()
+    x = torch.rand(2, 6, H, W)
+    out = net(x)
+    assert out.shape == (2, 4, H // S, W // S) and net.channels == 4 and net.new_modules == ("depth_head",)
+    assert torch.equal(out[:, 3], torch.zeros_like(out[:, 3]))  # depth kept until it has learnt
+    plain = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
+    plain.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("depth_head")})
+    torch.testing.assert_close(out[:, :3], plain(x), rtol=0, atol=1e-6)  # the flow is the plain network's
+    assert net(x, cost_volume=True).shape == (2, 26, H // S, W // S)
+    torch.nn.init.normal_(net.depth_head[2].weight)
+    net.zero_grad()
+    net(x, cost_volume=True).sum().backward()
+    assert [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0] == []
+    path = tmp_path / "flow.onnx"
+    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["flow"], opset_version=17,
+                      dynamic_axes={"images": {0: "batch"}, "flow": {0: "batch"}}, dynamo=False)
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"images": x.numpy()})[0]
+    assert got.shape == (2, 4, H // S, W // S)
+    np.testing.assert_allclose(got[:, 3], net(x)[:, 3].detach().numpy(), atol=1e-3)
+
+
+def test_solver_takes_the_depth_from_the_depth_channel():
+    """GT flow + a 4th channel of log(1.2) on every cell: the PnP's rotation and line of sight, at 1.2
+    times the input depth; the cells' confidences weigh the ratios."""
+    gt, noisy = _poses(3)
+    K = _K(3)
+    depth = _sphere_depth(noisy, K)
+    t = flow_targets(depth, K, noisy, gt, torch.ones(3, H, W, dtype=torch.bool), S)
+    flow = torch.cat([t.flow.permute(0, 3, 1, 2).double(), torch.ones(3, 1, H // S, W // S, dtype=torch.float64)], 1)
+    pnp = pose_from_flow(noisy, K, depth, flow, S)
+    ratio = torch.full((3, 1, H // S, W // S), float(np.log(1.2)), dtype=torch.float64)
+    new = pose_from_flow(noisy, K, depth, torch.cat([flow, ratio], 1), S)
+    assert torch.allclose(new[:, 2, 3], 1.2 * noisy[:, 2, 3], rtol=1e-9)
+    assert torch.allclose(new[:, :2, 3] / new[:, 2:3, 3], pnp[:, :2, 3] / pnp[:, 2:3, 3], atol=1e-12)
+    assert torch.equal(new[:, :3, :3], pnp[:, :3, :3])
+    ratio[:, :, :, : W // S // 2] = float(np.log(0.5))  # left half says 0.5 but with no confidence there
+    flow[:, 2, :, : W // S // 2] = 0.0
+    new = pose_from_flow(noisy, K, depth, torch.cat([flow, ratio], 1), S)
+    assert torch.allclose(new[:, 2, 3], 1.2 * noisy[:, 2, 3], rtol=1e-9)
+
+
+def test_depth_ratio_loss_is_zero_at_the_gt_ratio():
+    from cosy_lite.train.pose_task import depth_ratio_loss
+
+    gt, noisy = _poses(2)
+    depth = _sphere_depth(noisy, _K(2))
+    flow = torch.rand(2, 4, H // S, W // S, dtype=torch.float64)
+    target = torch.log(gt[:, 2, 3] / noisy[:, 2, 3])
+    flow[:, 3] = target[:, None, None]
+    assert depth_ratio_loss(depth, flow, noisy, gt).item() < 1e-6
+    flow[:, 3] += 0.1
+    assert abs(depth_ratio_loss(depth, flow, noisy, gt).item() - 0.1) < 1e-6
+
+
+def test_init_adds_a_depth_head_to_the_published_refiner(tmp_path):
+    """``train.py --init`` with the reference refiner (no depth head) and ``net.depth_head=true``: every
+    published tensor taken, the head named in the record; the other way round is refused."""
+    from cosy_lite.train.init_weights import load_initial_weights
+    from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint, save_weights
+    from cosy_lite.weights.reference_models import reference_models
+
+    published = reference_models("ycbvsynth").path("refiner")
+    cfg = dict(arch="flow", backbone="efficientnet_lite0", crop_resolution=[144, 192], corr_radius=4, width=64)
+    net = build_pose_net(PoseNetConfig(**cfg, depth_head=True), "refiner", load_weights=False)
+    record = load_initial_weights(net, published, "refiner")
+    assert record["new_modules"] == ["depth_head"]
+    file = load_checkpoint(published, kind="refiner").model
+    own = net.state_dict()
+    assert all(torch.equal(own[k], v.to(own[k].dtype)) for k, v in file.items())
+    plain = build_pose_net(PoseNetConfig(**cfg), "refiner", load_weights=False)
+    assert "new_modules" not in load_initial_weights(plain, published, "refiner")
+    ckpt = load_checkpoint(published, kind="refiner")
+    ckpt.model.update({k: v for k, v in own.items() if k.startswith("depth_head")})
+    with_head = save_weights(tmp_path / "refiner.safetensors", ckpt)[0]
+    with pytest.raises(CheckpointError, match=r"unexpected \['depth_head"):
+        load_initial_weights(plain, with_head, "refiner")
+
+
+def test_a_depth_head_fitted_to_one_batch_corrects_the_depth(tiny_synth_root):
+    """Training with a depth head lowers its loss term, and one iteration of the fitted network brings
+    the depths of the crops it was fitted on towards the GT (a wrong sign of the ratio would not)."""
+    from cosy_lite.config import load_config
+    from cosy_lite.nets.render_and_compare import iterate_poses
+    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, initial_poses
+
+    cfg = load_config(PoseTrainConfig, None, [
+        "model=refiner", "dataset=tiny", "net.arch=flow", "net.backbone=efficientnet_lite0", "net.depth_head=true",
+        "net.width=32", "net.corr_radius=3", "net.crop_resolution=[96,128]", "data.val_images=1",
+        "data.val_instances=4", "data.n_points=300", "augmentation.enabled=false", "loop.device=cpu"])
+    task = PoseTask(cfg, tiny_synth_root)
+    ds = task.train_dataset()
+    batch = task.collate([ds[i] for i in range(4)])
+    torch.manual_seed(0)
+    net = task.build_model()
+    opt = torch.optim.Adam(net.parameters(), lr=2e-3)
+    depth_terms = []
+    for _ in range(20):
+        torch.manual_seed(0)  # the same input poses every step
+        out = task.compute_losses(net, batch, 0, torch.device("cpu"))
+        opt.zero_grad()
+        out["total"].backward()
+        opt.step()
+        depth_terms.append(out["depth_ratio"].item())
+    assert depth_terms[-1] < 0.5 * depth_terms[0], depth_terms
+    torch.manual_seed(0)
+    rows = task.objects.index(batch.obj_ids)
+    TCO_in = initial_poses("refiner", batch.TCO, batch.bboxes, batch.K, task.objects.diameters[rows], cfg.noise,
+                           training=True)
+    with torch.no_grad():
+        poses = iterate_poses(net.eval(), batch.rgb.float() / 255, batch.K, TCO_in, batch.obj_ids.tolist(),
+                              task.objects.points[rows], task.renderer, 1, (96, 128))
+    before = (TCO_in[:, 2, 3] - batch.TCO[:, 2, 3]).abs()
+    after = (poses[-1][:, 2, 3] - batch.TCO[:, 2, 3]).abs()
+    assert after.mean() < 0.5 * before.mean(), (before, after)

@@ -38,6 +38,7 @@ from cosy_lite.export.manifest import (
     parse_json_meta,
 )
 from cosy_lite.nets.detection_masks import binary_masks
+from cosy_lite.nets.flow_pose_net import DEPTH_CHANNELS, FLOW_CHANNELS
 from cosy_lite.nets.flow_pose_solver import FLOW_STRIDE
 
 if TYPE_CHECKING:
@@ -46,7 +47,6 @@ if TYPE_CHECKING:
 
 PROVIDERS = ("CPUExecutionProvider",)
 POSE_OUTPUTS = 9
-FLOW_CHANNELS = 3  # a flow refiner's output [B,3,h/stride,w/stride]: dx, dy, confidence
 
 
 def session_options(threads: int | None = None, spinning: bool = False) -> Any:
@@ -146,7 +146,8 @@ class OnnxPoseNet:
                                  f"[batch, {POSE_INPUT_CHANNELS}, {h}, {w}] (6 channels: crop + rendering; "
                                  f"metadata crop_resolution {h}x{w})")
         self.output = "flow" if self.config.get("arch") == "flow" else "delta"
-        expected = [FLOW_CHANNELS, h // FLOW_STRIDE, w // FLOW_STRIDE] if self.output == "flow" else [POSE_OUTPUTS]
+        channels = DEPTH_CHANNELS if self.config.get("depth_head") else FLOW_CHANNELS  # (dx, dy, confidence[, depth])
+        expected = [channels, h // FLOW_STRIDE, w // FLOW_STRIDE] if self.output == "flow" else [POSE_OUTPUTS]
         got = list(outputs[0].shape)[1:]  # symbolic (str) sizes of traced spatial dims match any value
         if len(got) != len(expected) or any(isinstance(g, int) and g != e for g, e in zip(got, expected)):
             raise OnnxModelError(self.path, f"output {outputs[0].name} shape", f"{list(outputs[0].shape)}, expected "
@@ -154,7 +155,7 @@ class OnnxPoseNet:
         self.input_name = inputs[0].name
 
     def run(self, images: np.ndarray) -> np.ndarray:
-        """``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` (or a flow refiner's ``[B,3,h/8,w/8]``) float32."""
+        """``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` (or a flow refiner's ``[B,3 or 4,h/8,w/8]``) float32."""
         x = np.ascontiguousarray(images, dtype=np.float32)
         if x.ndim != 4 or x.shape[1:] != (POSE_INPUT_CHANNELS, *self.crop_resolution):
             raise ValueError(f"{self.path.name}: images must be [B,{POSE_INPUT_CHANNELS},{self.crop_resolution[0]},"

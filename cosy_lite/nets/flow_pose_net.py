@@ -17,6 +17,13 @@ crop and the rendering separately (stride 8 and 16 maps; the stride-16 one upsam
 a small trainable descriptor head -> unit descriptors -> the local correlation (cost volume) of each
 rendering cell with the image cells within ``+-radius`` cells, divided by a learnt temperature ->
 softmax -> expected displacement (soft-argmax) and the peak probability as confidence.
+
+Depth (``depth_head=True``): the flow fixes depth only through the scale of the displacement
+field, a pixel or two across the object, and the refiner drifted in depth by ~1 cm per iteration
+from a perfect start (bench/RESULTS.md). The depth head reads both descriptors and the cost
+volume's probabilities of each cell and says, per rendered cell, the log ratio of the object's new
+depth to the current one (CosyPose's ``v_z``); the solver takes their confidence-weighted mean
+(:func:`cosy_lite.nets.flow_pose_solver.pose_from_flow`). Its output is a fourth channel.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from cosy_lite.nets.pose_net import IMAGENET_MEAN, IMAGENET_STD
 
 TRUNK_LEVELS = (2, 3)  # timm feature indices: strides 8 and 16
 FLOW_CHANNELS = 3  # dx, dy (crop px), confidence
+DEPTH_CHANNELS = 4  # with a depth head: + log(new depth / current depth) of the object, per cell
 
 
 def local_cost_volume(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
@@ -70,6 +78,9 @@ class FlowPoseNet(nn.Module):
         radius: displacements of the cost volume, in stride-8 cells (8 px each).
         descriptor: channels of the matching descriptors.
         temperature: initial softmax temperature of the cosine similarities (learnt).
+        depth_head: a fourth output channel, the log depth ratio (see the module doc); its last
+            layer starts at zero (depth kept), so published weights without it fine-tune from
+            the network they were.
     """
 
     # buffers (register_buffer), declared for type checkers
@@ -80,7 +91,7 @@ class FlowPoseNet(nn.Module):
     stride = FLOW_STRIDE
 
     def __init__(self, trunk: str = "efficientnet_lite0", pretrained: bool = True, load_weights: bool = True,
-                 radius: int = 4, descriptor: int = 64, temperature: float = 0.05):
+                 radius: int = 4, descriptor: int = 64, temperature: float = 0.05, depth_head: bool = False):
         super().__init__()
         from cosy_lite.nets.pretrained import lite_features
 
@@ -93,6 +104,13 @@ class FlowPoseNet(nn.Module):
         self.descriptor = nn.Sequential(_conv_bn_relu(c8 + c16, 2 * descriptor), _conv_bn_relu(2 * descriptor, descriptor),
                                         nn.Conv2d(descriptor, descriptor, 1))
         self.log_temperature = nn.Parameter(torch.tensor(math.log(temperature)))
+        self.depth_head: nn.Sequential | None = None
+        if depth_head:
+            last = nn.Conv2d(descriptor, 1, 1)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+            self.depth_head = nn.Sequential(_conv_bn_relu(2 * descriptor + (2 * radius + 1) ** 2, descriptor),
+                                            _conv_bn_relu(descriptor, descriptor), last)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -109,13 +127,33 @@ class FlowPoseNet(nn.Module):
         f = F.normalize(self.descriptor(f), dim=1)
         return f[:B], f[B:]
 
+    @property
+    def new_modules(self) -> tuple[str, ...]:
+        """Modules that published weights of a network without them may lack (``train.py --init``)."""
+        return () if self.depth_head is None else ("depth_head",)
+
+    @property
+    def channels(self) -> int:
+        """Channels of the output: :data:`FLOW_CHANNELS`, or :data:`DEPTH_CHANNELS` with a depth head."""
+        return FLOW_CHANNELS if self.depth_head is None else DEPTH_CHANNELS
+
     def cost_volume(self, images: torch.Tensor) -> torch.Tensor:
-        """Logits ``[B, (2r+1)^2, H/8, W/8]``: rendering cell vs the image cells around it."""
+        """Logits ``[B, (2r+1)^2, H/8, W/8]`` (rendering cell vs the image cells around it), followed
+        with a depth head by its log depth ratios ``[B, 1, H/8, W/8]``."""
         image, rendering = self.descriptors(images)
-        return local_cost_volume(rendering, image, self.radius) / self.log_temperature.exp()
+        logits = local_cost_volume(rendering, image, self.radius) / self.log_temperature.exp()
+        if self.depth_head is None:
+            return logits
+        depth = self.depth_head(torch.cat([rendering, image, logits.softmax(dim=1)], dim=1))
+        return torch.cat([logits, depth], dim=1)
 
     def forward(self, images: torch.Tensor, cost_volume: bool = False) -> torch.Tensor:
-        """``images [B, 6, H, W]`` (crop, rendering) -> ``[B, 3, H/8, W/8]`` (dx, dy px, confidence);
-        ``cost_volume=True``: the logits instead (training; through forward so that DDP sees the call)."""
-        logits = self.cost_volume(images)
-        return logits if cost_volume else flow_from_cost(logits, self.radius, self.stride)
+        """``images [B, 6, H, W]`` (crop, rendering) -> ``[B, C, H/8, W/8]`` (dx, dy px, confidence[,
+        log depth ratio]); ``cost_volume=True``: :meth:`cost_volume` instead (training; through forward
+        so that DDP sees the call)."""
+        raw = self.cost_volume(images)
+        if cost_volume:
+            return raw
+        n = (2 * self.radius + 1) ** 2
+        flow = flow_from_cost(raw[:, :n], self.radius, self.stride)
+        return flow if self.depth_head is None else torch.cat([flow, raw[:, n:]], dim=1)

@@ -13,6 +13,11 @@ with ``X`` the cell's 3D point (camera frame, current pose), rotation about the 
 the current pose. Items with fewer than ``MIN_CELLS`` confident rendered cells, or a non-finite or
 behind-the-camera solution, keep their input pose.
 
+A flow with a fourth channel (a network with a depth head) also says the log ratio of the object's
+new depth to the current one, per cell: the new depth is the current one times the exponential of
+their weighted mean, and the fitted translation is scaled to it along its line of sight (the
+object's projected origin and the rotation stay the PnP's).
+
 Differentiable in the flow and the confidences (training puts the pose loss behind the solver,
 :meth:`cosy_lite.train.pose_task.PoseTask`); computed in float64 with autocast off.
 """
@@ -114,7 +119,7 @@ def pose_from_flow(TCO: Tensor, K_crop: Tensor, depth: Tensor, flow: Tensor, str
     x, y in crop px of each rendered cell, confidence in [0, 1]) and the rendering's ``depth
     [B,1,H,W]`` (m) at the current poses ``TCO [B,4,4]`` with intrinsics ``K_crop [B,3,3]``."""
     TCO, flow = TCO.double(), flow.double()
-    B, _, h, w = flow.shape
+    B, channels, h, w = flow.shape
     uv = cell_centres((h, w), stride, flow.device)
     d = sample_cells(depth, stride, (h, w))
     X = backproject(uv, d, K_crop).reshape(B, -1, 3)
@@ -127,8 +132,28 @@ def pose_from_flow(TCO: Tensor, K_crop: Tensor, depth: Tensor, flow: Tensor, str
     out = TCO.clone()
     if bool(enough.any()):
         out[enough] = solve_pose(TCO[enough], K_crop[enough], X[enough], targets[enough], weights[enough], iterations)
+    if channels > 3 and bool(enough.any()):
+        out[enough] = with_depth_ratio(out[enough], TCO[enough, 2, 3], safe[enough, 3].reshape(-1, h * w),
+                                       weights[enough])
     ok = torch.isfinite(out).all(dim=2).all(dim=1) & (out[:, 2, 3] > 0)
     return torch.where(ok[:, None, None], out, TCO)
+
+
+def mean_depth_ratio(log_ratios: Tensor, weights: Tensor) -> Tensor:
+    """``[B]``: the ``weights``-weighted mean of per-cell log depth ratios ``[B, N]`` (0 without weight)."""
+    return (log_ratios * weights).sum(dim=1) / weights.sum(dim=1).clamp(min=1e-12)
+
+
+def with_depth_ratio(TCO: Tensor, depth_in: Tensor, log_ratios: Tensor, weights: Tensor) -> Tensor:
+    """``TCO [B,4,4]`` with its translation scaled along its line of sight to the depth
+    ``depth_in [B] * exp(mean log ratio)`` (:func:`mean_depth_ratio`); a translation behind the
+    camera is left as it is (the caller rejects it)."""
+    depth = depth_in * mean_depth_ratio(log_ratios, weights).exp()
+    z = TCO[:, 2, 3]
+    scale = torch.where(z > 0, depth / torch.where(z > 0, z, torch.ones_like(z)), torch.ones_like(z))
+    out = TCO.clone()
+    out[:, :3, 3] = TCO[:, :3, 3] * scale[:, None]
+    return out
 
 
 def flow_confidence(depth: Tensor, flow: Tensor, stride: int) -> Tensor:

@@ -2,7 +2,9 @@
 
 The weights file (a reference set's ``KIND.safetensors``, any shard of a sharded one, or a run's
 ``checkpoint.pt``) must hold the same kind of network with exactly the parameters the run builds; only
-the weights are taken (the optimiser and the step start afresh). What initialised the run is
+the weights are taken (the optimiser and the step start afresh). The one exception: parameters of a
+module the network adds to what the file holds (``model.new_modules``, e.g. a flow refiner's depth
+head) start at their initial values and are named in the record. What initialised the run is
 recorded in every checkpoint's ``meta["init"]`` and from there in a published card, so a network
 trained over several working periods says where each part came from.
 """
@@ -28,7 +30,8 @@ def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) ->
     path = Path(path)
     ckpt = load_checkpoint(path, kind=kind)
     own = model.state_dict()
-    missing = sorted(set(own) - set(ckpt.model))
+    fresh = sorted(k for k in set(own) - set(ckpt.model) if k.split(".")[0] in new_modules(model))
+    missing = sorted(set(own) - set(ckpt.model) - set(fresh))
     unexpected = sorted(set(ckpt.model) - set(own))
     shapes = sorted(k for k in set(own) & set(ckpt.model) if tuple(own[k].shape) != tuple(ckpt.model[k].shape))
     if missing or unexpected or shapes:
@@ -36,12 +39,20 @@ def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) ->
                                                           ("differently shaped", shapes)) if keys]
         raise CheckpointError(path, "field 'model' does not fit the network this run builds ("
                               + "; ".join(parts) + "); expected weights of the same architecture (net.* settings)")
-    model.load_state_dict({k: v.to(own[k].dtype) for k, v in ckpt.model.items()})
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in ckpt.model.items()}, strict=not fresh)
     record: dict[str, Any] = {"path": str(path), "kind": ckpt.kind, "step": int(ckpt.step),
                               "items_seen": items_seen(path, ckpt.meta)}
+    if fresh:
+        record["new_modules"] = sorted({k.split(".")[0] for k in fresh})
     if "init" in ckpt.meta:
         record["init"] = ckpt.meta["init"]
     return record
+
+
+def new_modules(model: torch.nn.Module) -> tuple[str, ...]:
+    """Top-level modules of ``model`` that weights of an earlier network may lack (its ``new_modules``)."""
+    inner = getattr(model, "module", model)  # DDP
+    return tuple(getattr(inner, "new_modules", ()))
 
 
 CARD_COUNTS = ("crops_seen", "images_seen")  # what a reference card calls the items behind its network

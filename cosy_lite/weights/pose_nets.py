@@ -42,6 +42,9 @@ class PoseNetConfig:
     # head units -> (6D residual, xy shift as a fraction of the crop width, log depth); see PoseNet.
     # None: the model kind's default (pose_net.OUTPUT_SCALES)
     output_scale: list[float] | None = None
+    # flow: a depth head (log ratio of the new depth to the current one, a 4th output channel) instead
+    # of the depth the flow's scale implies
+    depth_head: bool = False
 
 
 def check_net_config(cfg: PoseNetConfig) -> None:
@@ -58,6 +61,8 @@ def check_net_config(cfg: PoseNetConfig) -> None:
     if cfg.arch == "flow" and (cfg.crop_resolution[0] % 16 or cfg.crop_resolution[1] % 16):
         raise ConfigError("network config", "net.crop_resolution", f"net.arch=flow needs crops divisible by 16, "
                           f"got {list(cfg.crop_resolution)}")
+    if cfg.depth_head and cfg.arch != "flow":
+        raise ConfigError("network config", "net.depth_head", f"a depth head belongs to net.arch=flow, not {cfg.arch!r}")
     if cfg.arch == "flow" and cfg.corr_radius < 1:
         raise ConfigError("network config", "net.corr_radius", f"net.arch=flow needs >= 1 cell, got {cfg.corr_radius}")
     if cfg.arch == "early" and cfg.backbone not in BACKBONES:
@@ -81,7 +86,7 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
         from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
         return FlowPoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
-                           radius=cfg.corr_radius, descriptor=cfg.width)
+                           radius=cfg.corr_radius, descriptor=cfg.width, depth_head=cfg.depth_head)
     if cfg.arch == "siamese":
         from cosy_lite.nets.siamese_pose_net import SiamesePoseNet
 
