@@ -107,8 +107,8 @@ class FlowPoseNet(nn.Module):
         self.depth_head: nn.Sequential | None = None
         if depth_head:
             last = nn.Conv2d(descriptor, 1, 1)
-            nn.init.zeros_(last.weight)
-            nn.init.zeros_(last.bias)
+            for p in last.parameters():
+                nn.init.zeros_(p)
             self.depth_head = nn.Sequential(_conv_bn_relu(2 * descriptor + (2 * radius + 1) ** 2, descriptor),
                                             _conv_bn_relu(descriptor, descriptor), last)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
