@@ -281,6 +281,54 @@ def test_icp_of_every_candidate_leaves_the_rgb_poses_alone(scene, tmp_path, back
     assert (agreement[True] > agreement[False] + 0.1).any(), agreement  # and better somewhere: the check acted
 
 
+def test_start_choice_keeps_the_start_stages_best_and_icp_verifies_the_others(scene):
+    """``candidate_choice="start"``: the RGB poses are those of one candidate (the start stage's best),
+    without ICP no other candidate is refined, and with ICP the pose kept explains the depth at least
+    as well as ICP of that candidate alone."""
+    from cosy_lite.inference.icp import IcpConfig, depth_agreement
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
+
+    torch.manual_seed(0)
+    refiner = PoseModel(FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval(), "refiner", CROP, [1, 2],
+                        output="flow")
+    image, det, depth = _image(scene), _detections(scene), _depth(scene)
+    one = _predictor(scene, refiner, 2, 1).predict(image, K, detections=det)
+    by_start = _predictor(scene, refiner, 2, 3, candidate_choice="start")
+    rgb = by_start.predict(image, K, detections=det)
+    np.testing.assert_allclose(rgb.TCO.numpy(), one.TCO.numpy(), atol=1e-6)
+    np.testing.assert_allclose(rgb.TCO_coarse.numpy(), one.TCO_coarse.numpy(), atol=1e-7)
+    n_crops = []
+    for choice in ("start", "confidence"):
+        p = _predictor(scene, refiner, 2, 3, candidate_choice=choice)
+        calls = []
+        p.renderer = _CountingRenderer(scene["renderer"], calls)
+        p.predict(image, K, detections=det)
+        n_crops.append(sum(calls))
+    assert n_crops == [2 * 4, 3 * 4 + 4], n_crops  # start: 2 iterations of 4 objects; confidence: 3 candidates + 1
+    agreement = {}
+    for choice, k in (("start", 3), ("start", 1)):
+        p = _predictor(scene, refiner, 2, k, candidate_choice=choice, icp=True, icp_settings=IcpConfig())
+        est = p.predict(image, K, depth=depth, detections=det)
+        # (k = 3: the first iteration runs in a batch of 12 crops, other kernels: ~1e-4 apart)
+        np.testing.assert_allclose(est.TCO_before_icp.numpy(), one.TCO.numpy(), atol=2e-3)
+        agreement[k] = depth_agreement(est.TCO.numpy(), K, depth, scene["masks"], scene["renderer"], scene["ids"])
+    assert (agreement[3] >= agreement[1] - 1e-3).all(), agreement  # (the same 1e-4 kernel differences)
+
+
+class _CountingRenderer:
+    """A renderer that counts the crops it renders (``calls``: one entry per call, its crop count)."""
+
+    def __init__(self, inner, calls: list[int]):
+        self.inner, self.calls = inner, calls
+
+    def render_tensors(self, obj_ids, *args, **kwargs):
+        self.calls.append(len(obj_ids))
+        return self.inner.render_tensors(obj_ids, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
 def test_templates_cache_is_read_back_and_a_damaged_file_is_rendered_again(scene, tmp_path):
     keys = {1: "mesh-a", 2: "mesh-b"}
     first = SilhouetteTemplates(scene["renderer"], [1, 2], scene["diameters"], n_rotations=64, cache_dir=tmp_path,

@@ -399,14 +399,15 @@ class Predictor:
                           "detections are boxes only: the boxes stand in for their masks (a weaker silhouette match)",
                           RuntimeWarning, stacklevel=2)
             det = dataclasses.replace(det, masks=torch.from_numpy(box_masks(det.boxes, (H, W))))
+        icp = self.config.icp_settings
+        verify = self.config.icp and depth is not None and icp.verify_candidates and icp.check_agreement
         with flush_denormals():
-            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock)
+            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock, verify)
         icp_results, TCO_before_icp = None, None
         if self.config.icp and depth is not None:
             TCO_before_icp = TCO
             with clock("icp"):
-                icp = self.config.icp_settings
-                if hypotheses is not None and icp.verify_candidates and icp.check_agreement:
+                if hypotheses is not None and verify:
                     TCO, icp_results = self.depth_refinement.refine_hypotheses(hypotheses, K, depth, det, (H, W))
                 else:
                     TCO, icp_results = self.depth_refinement.refine(TCO, K, depth, det, (H, W))
@@ -420,11 +421,12 @@ class Predictor:
                              TCO_coarse, self._timings(clock, t_start, one_time), icp_results, TCO_before_icp,
                              None if given_masks is None else given_masks.clone())
 
-    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections,
-               clock: Clock) -> tuple[Tensor, Tensor, Tensor | None]:
+    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock,
+               verify: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
         """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, and with several template
         candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose, the others
-        after their one refiner iteration (None with one candidate)."""
+        after their one refiner iteration (None with one candidate). ``verify``: ICP will verify
+        the hypotheses (with ``candidate_choice="start"`` they are made only then)."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         N = len(det)
@@ -448,6 +450,8 @@ class Predictor:
         else:
             # (template matching is part of "crops": the rest of this stage's time, counted once below)
             candidates = torch.from_numpy(self._template_candidates(det, K.numpy(), rgb)).to(self.device)
+            if self.config.candidate_choice == "start" and not verify:
+                candidates = candidates[:, :1]  # the start stage's best goes on: nothing for the others to do
             if candidates.shape[1] == 1:
                 TCO_init = TCO_coarse = candidates[:, 0].float()
             else:
@@ -477,7 +481,7 @@ class Predictor:
                           renderer: Renderer, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(chosen candidate [N,4,4], it after one refiner iteration [N,4,4], every candidate after one
         iteration [N,k,4,4], the choice [N]) of ``candidates [N,k,4,4]``: the one with the highest
-        flow confidence (invalid candidates are not run)."""
+        flow confidence (invalid candidates are not run), or with ``candidate_choice="start"`` the first."""
         N, k = candidates.shape[:2]
         flat = candidates.reshape(N * k, 4, 4)
         owner = torch.arange(N, device=flat.device).repeat_interleave(k)
@@ -487,6 +491,8 @@ class Predictor:
                                           [ids[i] for i in owner.tolist()], points[owner], renderer,
                                           self.refiner.crop_resolution, self.config.batch_size)
         pick = score.view(N, k).argmax(dim=1)
+        if self.config.candidate_choice == "start":  # the start stage ranked them: its best goes on
+            pick = torch.zeros_like(pick)
         at = torch.arange(N, device=flat.device)
         refined = refined.view(N, k, 4, 4)
         return candidates[at, pick], refined[at, pick], refined, pick

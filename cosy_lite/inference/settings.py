@@ -21,6 +21,7 @@ from cosy_lite.errors import FieldValueError
 from cosy_lite.inference.icp import IcpConfig
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 
+CANDIDATE_CHOICES = ("confidence", "start")
 PRECISIONS = ("fp32", "bf16", "int8")  # bf16: torch autocast; int8: the quantised ONNX pose networks
 # predict's defaults under every other layer: a person reads each estimate, so wrong ones cost. Measured
 # (python bench/bench_score_threshold.py, the demo detector's 2,417 detections of the 100 test images): the
@@ -35,6 +36,9 @@ class InferenceConfig:
 
     start: str = "coarse"  # a key of STARTS (cosy_lite.inference.starts)
     n_candidates: int = 1  # template starts: the best templates each get one refiner iteration, the most confident goes on
+    # which of several candidates goes on: "confidence" (the refiner's, after its one iteration) or "start"
+    # (the start stage's best; the others are refined once only as hypotheses for ICP to verify)
+    candidate_choice: str = "confidence"
     n_refiner_iterations: int = 4  # after the start (CosyPose: trained with 1, run with 4)
     min_score: float = 0.0  # pose only detections scoring at least this (BOP19: any threshold lowers AR)
     one_per_region: bool = False  # at most one detection per image region (mask IoU > 0.5, any class)
@@ -49,6 +53,7 @@ class InferenceConfig:
     def __post_init__(self) -> None:
         checks = (("start", self.start in STARTS, f"one of {list(STARTS)}"),
                   ("n_candidates", self.n_candidates >= 1, "an integer >= 1"),
+                  ("candidate_choice", self.candidate_choice in CANDIDATE_CHOICES, f"one of {list(CANDIDATE_CHOICES)}"),
                   ("n_refiner_iterations", self.n_refiner_iterations >= 0, "an integer >= 0"),
                   ("min_score", 0.0 <= self.min_score <= 1.0, "a score in [0, 1]"),
                   ("max_per_object", self.max_per_object >= 0, "an integer >= 0 (0: no limit)"),
