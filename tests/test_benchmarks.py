@@ -31,6 +31,10 @@ TOY_RUNS = {
                        "--threads", "1", "--iterations", "1"], "refiner x1"),
     "bench_pose_training.py": (["{data}", "--steps", "1", "--threads", "1", "loop.batch_size=2", "data.val_images=1",
                                 "data.val_instances=2"], "crops/s"),
+    "bench_reference_pipeline.py": (["--dataset", "{data}", "--images", "1", "--repeats", "1", "--threads", "1",
+                                     "--templates-cache", "{tmp}/templates", "--variant", "one", "n_candidates=1",
+                                     "--variant", "two", "n_candidates=2", "candidate_choice=start"],
+                                    "| torch | + ICP | two |"),
     "bench_detector.py": (["--checkpoint", str(REFERENCE / "detector-00001-of-00004.safetensors"), "--dataset", "{data}",
                            "--threads", "1", "--out-dir", "{tmp}"], "| lite0_fpn |"),
 }

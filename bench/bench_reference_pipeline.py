@@ -1,0 +1,114 @@
+"""Per-image latency of a reference set's pipeline under several settings, side by side.
+
+Usage: python bench/bench_reference_pipeline.py [--pretrained ycbvsynth] [--dataset data/ycbvsynth]
+       [--images 5] [--repeats 2] [--threads 2] [--onnx EXPORT_DIR]
+       [--variant NAME KEY=VALUE ...] [--variant ...]
+
+The pipeline of ``cosy-lite infer --pretrained NAME`` (its detector, start, refiner; the templates
+from the cache, rendered before the clock starts) on the first ``--images`` test images, with
+``--threads`` CPU threads: RGB only, and with the depth image (ICP). Each ``--variant`` changes the
+set's settings (``inference_config`` overrides, e.g. ``n_candidates=1``); without one, the set's
+own settings alone. ``--onnx``: the same with the networks of a ``cosy-lite export`` folder in
+onnxruntime. The variants are called in turn on every image (round-robin, so they share the
+machine's load); the table gives the median seconds per image and each one's ratio to the first
+variant of its backend and mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def parse_variants(given: list[list[str]] | None) -> dict[str, list[str]]:
+    """``--variant NAME KEY=VALUE ...`` -> {NAME: overrides}; none given: the set's own settings."""
+    if not given:
+        return {"set": []}
+    return {v[0]: v[1:] for v in given}
+
+
+MODES = {"RGB": [], "+ ICP": ["icp=true"]}  # mode -> the settings it adds (ICP: with the depth image)
+
+
+def predictors(args, variants: dict[str, list[str]], ds):
+    """{(backend, mode, variant): Predictor} for the torch backend and, with ``--onnx``, onnxruntime."""
+    from cosy_lite.inference.predictor import Predictor
+    from cosy_lite.inference.settings import inference_config
+    from cosy_lite.weights.reference_models import reference_models
+
+    ref = reference_models(args.pretrained)
+    if args.templates_cache is None:  # as the commands: $COSY_LITE_CACHE/templates
+        from cosy_lite.bop.folders import default_cache_dir
+
+        args.templates_cache = default_cache_dir() / "templates"
+    out = {}
+    for backend in ("torch", "onnx") if args.onnx is not None else ("torch",):
+        for mode, added in MODES.items():
+            for name, overrides in variants.items():
+                config = inference_config(ref.inference, ref.pipeline_path, None, [*overrides, *added])
+                out[(backend, mode, name)] = (
+                    Predictor.from_pretrained(args.pretrained, dataset=ds, config=config,
+                                              templates_cache=args.templates_cache) if backend == "torch" else
+                    Predictor.from_onnx(args.onnx, dataset=ds, config=config, threads=args.threads,
+                                        templates_cache=args.templates_cache))
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--pretrained", default="ycbvsynth")
+    p.add_argument("--dataset", type=Path, default=Path("data/ycbvsynth"))
+    p.add_argument("--images", type=int, default=5)
+    p.add_argument("--repeats", type=int, default=2, help="timed passes over the images (after one warm-up pass)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--onnx", type=Path, default=None, metavar="EXPORT_DIR")
+    p.add_argument("--templates-cache", type=Path, default=None, metavar="DIR",
+                   help="default: $COSY_LITE_CACHE/templates, as cosy-lite infer")
+    p.add_argument("--variant", nargs="+", action="append", metavar="NAME KEY=VALUE",
+                   help="a name and the settings it changes, e.g. --variant one n_candidates=1")
+    args = p.parse_args(argv)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP; see infer.py
+
+    import torch
+
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.render.gl import use_egl
+
+    use_egl()
+    torch.set_num_threads(args.threads)
+    ds = BopDataset(args.dataset)
+    records = list(ds.images("test"))[:args.images]
+    variants = parse_variants(args.variant)
+    preds = predictors(args, variants, ds)
+    images = [(ds.load_rgb(r), ds.load_depth(r), r.camera.K) for r in records]
+    for pred in preds.values():  # templates rendered (or read) and the networks warmed before the clock
+        for rgb, depth, K in images:
+            pred.predict(rgb, K, depth)
+    load0 = os.getloadavg()
+    seconds: dict[tuple[str, str, str], list[float]] = {}
+    for _ in range(args.repeats):
+        for rgb, depth, K in images:
+            for key, pred in preds.items():
+                t = time.perf_counter()
+                pred.predict(rgb, K, depth)
+                seconds.setdefault(key, []).append(time.perf_counter() - t)
+    load1 = os.getloadavg()
+    print(f"# {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} threads; "
+          f"reference set {args.pretrained}, {len(images)} test images of {ds.root}, detector included; "
+          f"load average before {tuple(round(v, 2) for v in load0)}, after {tuple(round(v, 2) for v in load1)}")
+    print("| backend | mode | variant | settings | s / image (median) | vs first variant |")
+    print("| --- | --- | --- | --- | ---: | ---: |")
+    for (backend, mode, name), s in seconds.items():
+        first = seconds[(backend, mode, next(iter(variants)))]
+        ratio = float(np.median(s)) / float(np.median(first))
+        print(f"| {backend} | {mode} | {name} | {' '.join(variants[name] + MODES[mode]) or '(the set)'} | {np.median(s):.3f} "
+              f"| {ratio:.2f}x |")
+
+
+if __name__ == "__main__":
+    main()
