@@ -55,7 +55,8 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
         for key in ("training_command", "machine", "training_seconds", "metrics", "config"):
             assert card[key], f"{kind}.json: field {key!r} is empty"
     settings = inference_config(ref.inference, ref.pipeline_path)
-    assert (settings.start, settings.n_candidates, settings.n_refiner_iterations) == ("appearance", 1, 4)
+    assert (settings.start, settings.n_candidates, settings.candidate_choice, settings.n_refiner_iterations) == (
+        "appearance", 4, "start", 4)
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
@@ -136,7 +137,7 @@ def test_command_lines_take_the_sets_networks_and_settings_unless_given():
     args = _command_line("--pretrained", NAME, "--refiner", "mine.pt")
     config = pretrained_config(args)
     assert args.detector == reference_models(NAME).path("detector") and args.refiner == Path("mine.pt")
-    assert (config.start, config.n_candidates, args.coarse) == ("appearance", 1, None)  # no coarse net to load
+    assert (config.start, config.n_candidates, args.coarse) == ("appearance", 4, None)  # no coarse net to load
     assert args.scorer == reference_models(NAME).path("scorer")
     args = _command_line("--pretrained", NAME, "--start", "coarse")
     config = pretrained_config(args)  # the set's candidate count belongs to its own start
@@ -158,7 +159,8 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
     (folder / "pipeline.json").unlink()
     pipeline = json.loads((reference_root() / NAME / "pipeline.json").read_text())
     monkeypatch.setenv("COSY_LITE_MODELS", str(tmp_path))
-    changed = {"start": "templates", "n_candidates": 3, "n_refiner_iterations": 2, "min_score": 0.25, "max_per_object": 2,
+    changed = {"start": "templates", "n_candidates": 3, "candidate_choice": "start", "n_refiner_iterations": 2,
+               "min_score": 0.25, "max_per_object": 2,
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
                "fuse_bn": False, "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
@@ -185,7 +187,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
 
     ref = reference_models(NAME)
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
-    assert (p.start, p.n_candidates, p.n_refiner_iterations) == ("appearance", 1, 4)
+    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 4, "start", 4)
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
     assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]

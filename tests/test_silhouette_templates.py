@@ -251,6 +251,42 @@ def test_icp_keeps_the_candidate_the_depth_confirms(scene):
     assert (_box_error(np.stack([first[i].TCO[:3, :3] for i in boxes]), G) > 15).all()  # ICP alone: within 15 deg
 
 
+def test_icp_tries_the_other_candidates_only_where_the_first_one_disagrees(scene, monkeypatch):
+    """``accept_agreement``: the first hypothesis of each detection is ICP'd, and the others only for
+    the detections whose first result's depth agreement is under it (-1: never, above 1: always)."""
+    from cosy_lite.inference import depth_refinement
+    from cosy_lite.inference.icp import IcpConfig
+
+    calls: list[int] = []  # poses per ICP call
+
+    def counting(TCO, *args, **kwargs):
+        calls.append(len(TCO))
+        return refine_poses_icp(TCO, *args, **kwargs)
+
+    refine_poses_icp = depth_refinement.refine_poses_icp
+    monkeypatch.setattr(depth_refinement, "refine_poses_icp", counting)
+    depth, det = _depth(scene), _detections(scene)
+    hyps = torch.from_numpy(_templates(scene).match(scene["masks"], scene["ids"], K, top_k=3).TCO[:, ::-1].copy())
+    hyps[0] = hyps[0].flip(0)  # detection 0 (a box): the true rotation first, the others' wrong ones first
+    G = scene["T_true"][[0, 2, 3], :3, :3]
+
+    def run(accept):
+        calls.clear()
+        p = _predictor(scene, None, 0, 1, icp=True, icp_settings=IcpConfig(max_rotation_deg=15.0, accept_agreement=accept))
+        TCO, results = p.depth_refinement.refine_hypotheses(hyps, torch.from_numpy(K), depth, det, (H, W))
+        return TCO, np.array([r.agreement for r in results]), list(calls)
+
+    first, agreement, n = run(-1.0)  # never: ICP of the first hypotheses alone
+    assert n == [4] and _box_error(first[0, :3, :3].numpy()[None], G[:1]).max() < 0.5
+    assert (_box_error(first[[2, 3], :3, :3].numpy(), G[1:]) > 15).all()
+    assert agreement[0] > agreement[[2, 3]].max() + 0.1, agreement  # the true pose explains the depth
+    every, _, n = run(2.0)  # always: 3 x 2 others after the 4 first
+    assert n == [4, 8] and _box_error(every[[0, 2, 3], :3, :3].numpy(), G).max() < 0.5
+    gated, _, n = run(float(agreement[0]) - 1e-6)  # detection 0 agrees: its others are not tried
+    assert n == [4, 6] and _box_error(gated[[0, 2, 3], :3, :3].numpy(), G).max() < 0.5
+    np.testing.assert_allclose(gated[0].numpy(), first[0].numpy(), rtol=0, atol=1e-12)  # (Open3D: 1e-20 apart)
+
+
 @pytest.mark.parametrize("backend", ["torch", "onnx"])
 def test_icp_of_every_candidate_leaves_the_rgb_poses_alone(scene, tmp_path, backend):
     """3 candidates, one refiner iteration each (an untrained refiner): with ICP on and a depth image,
@@ -283,8 +319,8 @@ def test_icp_of_every_candidate_leaves_the_rgb_poses_alone(scene, tmp_path, back
 
 def test_start_choice_keeps_the_start_stages_best_and_icp_verifies_the_others(scene):
     """``candidate_choice="start"``: the RGB poses are those of one candidate (the start stage's best),
-    without ICP no other candidate is refined, and with ICP the pose kept explains the depth at least
-    as well as ICP of that candidate alone."""
+    no other candidate is refined (with ICP or without), and with ICP the pose kept explains the depth
+    at least as well as ICP of that candidate alone."""
     from cosy_lite.inference.icp import IcpConfig, depth_agreement
     from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
@@ -307,12 +343,14 @@ def test_start_choice_keeps_the_start_stages_best_and_icp_verifies_the_others(sc
     assert n_crops == [2 * 4, 3 * 4 + 4], n_crops  # start: 2 iterations of 4 objects; confidence: 3 candidates + 1
     agreement = {}
     for choice, k in (("start", 3), ("start", 1)):
-        p = _predictor(scene, refiner, 2, k, candidate_choice=choice, icp=True, icp_settings=IcpConfig())
+        p = _predictor(scene, refiner, 2, k, candidate_choice=choice, icp=True, icp_settings=IcpConfig(accept_agreement=2))
+        calls = []
+        p.renderer = _CountingRenderer(scene["renderer"], calls)
         est = p.predict(image, K, depth=depth, detections=det)
-        # (k = 3: the first iteration runs in a batch of 12 crops, other kernels: ~1e-4 apart)
-        np.testing.assert_allclose(est.TCO_before_icp.numpy(), one.TCO.numpy(), atol=2e-3)
+        assert sum(calls) == 2 * 4, calls  # the other candidates go to ICP as the start stage made them
+        np.testing.assert_allclose(est.TCO_before_icp.numpy(), one.TCO.numpy(), atol=1e-6)
         agreement[k] = depth_agreement(est.TCO.numpy(), K, depth, scene["masks"], scene["renderer"], scene["ids"])
-    assert (agreement[3] >= agreement[1] - 1e-3).all(), agreement  # (the same 1e-4 kernel differences)
+    assert (agreement[3] >= agreement[1] - 1e-9).all(), agreement
 
 
 class _CountingRenderer:

@@ -2,7 +2,8 @@
 
 :class:`DepthRefinement` runs :func:`~cosy_lite.inference.icp.refine_poses_icp` on the valid poses
 (inside each detection's mask, or its box when there is no mask) and, with several hypotheses per
-detection, keeps the one whose depth agrees best with the measurement.
+detection, keeps the one whose depth agrees best with the measurement (trying the others only
+where the pipeline's choice does not already agree).
 """
 
 from __future__ import annotations
@@ -77,11 +78,23 @@ class DepthRefinement:
 
     def refine_hypotheses(self, hypotheses: Tensor, K: Tensor, depth: np.ndarray, det: Detections,
                           size: tuple[int, int]) -> tuple[Tensor, list[IcpResult]]:
-        """ICP of every hypothesis ``[N,k,4,4]``; per detection the result whose depth agrees best
-        with the measured depth (:attr:`IcpResult.agreement`, :func:`~cosy_lite.inference.icp.depth_agreement`)."""
+        """ICP of the hypotheses ``[N,k,4,4]`` of each detection, the pipeline's choice first: per
+        detection the result whose depth agrees best with the measured depth (:attr:`IcpResult.agreement`,
+        :func:`~cosy_lite.inference.icp.depth_agreement`; ties keep the first). The others are tried only
+        where the first one's agreement after ICP is below ``config.accept_agreement``."""
         N, k = hypotheses.shape[:2]
-        flat_det = det.select(torch.arange(N).repeat_interleave(k))
-        refined, results = self.refine(hypotheses.reshape(N * k, 4, 4).double(), K, depth, flat_det, size)
-        agreement = np.array([r.agreement for r in results]).reshape(N, k)
-        best = torch.from_numpy(agreement.argmax(axis=1) + np.arange(N) * k)
-        return refined[best], [results[i] for i in best.tolist()]
+        TCO, results = self.refine(hypotheses[:, 0].double(), K, depth, det, size)
+        first = np.array([r.agreement for r in results])
+        pending = np.flatnonzero(first < self.config.accept_agreement) if k > 1 else np.zeros(0, dtype=np.int64)
+        if not len(pending):
+            return TCO, results
+        owners = torch.from_numpy(pending).repeat_interleave(k - 1)
+        others, other_results = self.refine(hypotheses[torch.from_numpy(pending), 1:].reshape(-1, 4, 4).double(), K, depth,
+                                            det.select(owners), size)
+        agreement = np.array([r.agreement for r in other_results]).reshape(len(pending), k - 1)
+        TCO = TCO.clone()
+        for j, i in enumerate(pending.tolist()):
+            best = int(agreement[j].argmax())
+            if agreement[j, best] > first[i]:
+                TCO[i], results[i] = others[j * (k - 1) + best], other_results[j * (k - 1) + best]
+        return TCO, results

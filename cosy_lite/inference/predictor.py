@@ -12,7 +12,9 @@ all crops of an iteration rendered in one call). Starting pose (``start``):
   renderings as well (:class:`~cosy_lite.nets.appearance_templates.AppearanceTemplates`); with
   ``n_candidates`` > 1 the best templates each get one refiner iteration and the one the flow
   refiner is most confident about (:func:`~cosy_lite.nets.render_and_compare.refine_and_score`)
-  goes on (that iteration counts as the first of ``n_refiner_iterations``);
+  goes on (that iteration counts as the first of ``n_refiner_iterations``), or with
+  ``candidate_choice="start"`` the start stage's best (the others go, as the start stage made them,
+  only to ICP as hypotheses);
 
 -> ``n_refiner_iterations`` refiner iterations (CosyPose: 1 + 4) -> optionally point-to-plane ICP
 against the measured depth inside each detection mask (:func:`~cosy_lite.inference.icp.refine_poses_icp`).
@@ -424,9 +426,10 @@ class Predictor:
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock,
                verify: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
         """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, and with several template
-        candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose, the others
-        after their one refiner iteration (None with one candidate). ``verify``: ICP will verify
-        the hypotheses (with ``candidate_choice="start"`` they are made only then)."""
+        candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose first, then the
+        others after their one refiner iteration, or with ``candidate_choice="start"`` as the start
+        stage made them (None with one candidate). ``verify``: ICP will verify the hypotheses
+        (with ``candidate_choice="start"`` they are kept only then)."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         N = len(det)
@@ -450,8 +453,10 @@ class Predictor:
         else:
             # (template matching is part of "crops": the rest of this stage's time, counted once below)
             candidates = torch.from_numpy(self._template_candidates(det, K.numpy(), rgb)).to(self.device)
-            if self.config.candidate_choice == "start" and not verify:
-                candidates = candidates[:, :1]  # the start stage's best goes on: nothing for the others to do
+            if self.config.candidate_choice == "start":  # the start stage's best goes on; the others, as it
+                if verify and candidates.shape[1] > 1:  # made them, only for ICP to try
+                    hypotheses, pick = candidates.double(), torch.zeros(N, dtype=torch.long, device=self.device)
+                candidates = candidates[:, :1]
             if candidates.shape[1] == 1:
                 TCO_init = TCO_coarse = candidates[:, 0].float()
             else:
@@ -471,17 +476,19 @@ class Predictor:
         clock.sync()
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
-        if hypotheses is not None:
-            hypotheses = hypotheses.clone()
-            hypotheses[torch.arange(N, device=TCO.device), pick] = TCO
-            hypotheses = orthonormalise(hypotheses.cpu().double().reshape(-1, 4, 4)).reshape(hypotheses.shape)
+        if hypotheses is not None:  # the chosen one's final pose first (ICP tries it before the others)
+            at = torch.arange(N, device=TCO.device)
+            hypotheses = hypotheses.clone().double()
+            hypotheses[at, pick] = hypotheses[at, 0]
+            hypotheses[:, 0] = TCO
+            hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
 
     def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
                           renderer: Renderer, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(chosen candidate [N,4,4], it after one refiner iteration [N,4,4], every candidate after one
         iteration [N,k,4,4], the choice [N]) of ``candidates [N,k,4,4]``: the one with the highest
-        flow confidence (invalid candidates are not run), or with ``candidate_choice="start"`` the first."""
+        flow confidence (invalid candidates are not run)."""
         N, k = candidates.shape[:2]
         flat = candidates.reshape(N * k, 4, 4)
         owner = torch.arange(N, device=flat.device).repeat_interleave(k)
@@ -491,8 +498,6 @@ class Predictor:
                                           [ids[i] for i in owner.tolist()], points[owner], renderer,
                                           self.refiner.crop_resolution, self.config.batch_size)
         pick = score.view(N, k).argmax(dim=1)
-        if self.config.candidate_choice == "start":  # the start stage ranked them: its best goes on
-            pick = torch.zeros_like(pick)
         at = torch.arange(N, device=flat.device)
         refined = refined.view(N, k, 4, 4)
         return candidates[at, pick], refined[at, pick], refined, pick

@@ -37,7 +37,7 @@ class InferenceConfig:
     start: str = "coarse"  # a key of STARTS (cosy_lite.inference.starts)
     n_candidates: int = 1  # template starts: the best templates each get one refiner iteration, the most confident goes on
     # which of several candidates goes on: "confidence" (the refiner's, after its one iteration) or "start"
-    # (the start stage's best; the others are refined once only as hypotheses for ICP to verify)
+    # (the start stage's best: the RGB poses and time of one candidate; the others go only to ICP, as hypotheses)
     candidate_choice: str = "confidence"
     n_refiner_iterations: int = 4  # after the start (CosyPose: trained with 1, run with 4)
     min_score: float = 0.0  # pose only detections scoring at least this (BOP19: any threshold lowers AR)
@@ -105,8 +105,8 @@ def add_arguments(ap: Any, what: str = "") -> None:
                          "mask matched against rendered silhouettes) or appearance (those templates ranked by the "
                          "image inside the mask as well)")
     ap.add_argument("--candidates", type=int, default=None, metavar="K",
-                    help="template starts: the K best templates each get one refiner iteration, the most confident "
-                         "goes on (K > 1 needs a flow refiner)")
+                    help="template starts: the K best templates each get one refiner iteration; the most confident "
+                         "goes on, or with candidate_choice=start the start stage's best (K > 1 needs a flow refiner)")
     ap.add_argument("--n-refiner-iters", type=int, default=None, metavar="N", help="refiner iterations")
     ap.add_argument("--min-score", type=float, default=None, metavar="S",
                     help="pose only detections scoring at least S (BOP19: any threshold only lowers AR, "
