@@ -56,7 +56,7 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
             assert card[key], f"{kind}.json: field {key!r} is empty"
     settings = inference_config(ref.inference, ref.pipeline_path)
     assert (settings.start, settings.n_candidates, settings.candidate_choice, settings.n_refiner_iterations) == (
-        "appearance", 4, "start", 4)
+        "appearance", 6, "start", 4)
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
@@ -137,7 +137,7 @@ def test_command_lines_take_the_sets_networks_and_settings_unless_given():
     args = _command_line("--pretrained", NAME, "--refiner", "mine.pt")
     config = pretrained_config(args)
     assert args.detector == reference_models(NAME).path("detector") and args.refiner == Path("mine.pt")
-    assert (config.start, config.n_candidates, args.coarse) == ("appearance", 4, None)  # no coarse net to load
+    assert (config.start, config.n_candidates, args.coarse) == ("appearance", 6, None)  # no coarse net to load
     assert args.scorer == reference_models(NAME).path("scorer")
     args = _command_line("--pretrained", NAME, "--start", "coarse")
     config = pretrained_config(args)  # the set's candidate count belongs to its own start
@@ -187,7 +187,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
 
     ref = reference_models(NAME)
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
-    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 4, "start", 4)
+    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 4)
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
     assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]

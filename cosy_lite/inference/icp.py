@@ -84,7 +84,8 @@ class IcpConfig:
     verify_candidates: bool = True
     # ... the others are tried only where the chosen one's agreement after ICP is below this (above 1:
     # always). Measured (GT masks, 4 candidates, 100 test images): 0.99 spares 34 % of the detections
-    # the others' ICP at the same AR (0.7227 / 0.7229); 0.97 spares 51 % at AR 0.710 (bench/RESULTS.md)
+    # the others' ICP at the same AR (0.7227 / 0.7229); 0.97 spares 51 % at AR 0.710; a detector's
+    # masks never reach 0.99 (at most 0.94 there: their edges are not exact) (bench/RESULTS.md)
     accept_agreement: float = 0.99
 
     def __post_init__(self) -> None:
