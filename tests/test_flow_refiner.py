@@ -179,38 +179,47 @@ def test_config_checks_name_the_field(tiny_synth_root):
         PoseTask(cfg, tiny_synth_root)
 
 
-def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
-    """Training on the flow loss lowers it, and the fitted network's flow moves the poses towards the GT."""
+def _fit_one_batch(root, extra: list[str], steps: int, term: str):
+    """A small flow refiner on the tiny dataset (``extra`` config overrides) fitted to one batch of 4
+    crops for ``steps`` Adam steps from the same input poses: (config, task, batch, net, the last
+    losses, the loss term ``term`` at every step), and the input poses it was fitted on."""
     from cosy_lite.config import load_config
-    from cosy_lite.nets.render_and_compare import iterate_poses
-    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, pose_errors
+    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, initial_poses
 
     cfg = load_config(PoseTrainConfig, None, [
-        "model=refiner", "dataset=tiny", "net.arch=flow", "net.backbone=efficientnet_lite0",
+        "model=refiner", "dataset=tiny", "net.arch=flow", "net.backbone=efficientnet_lite0", *extra,
         "net.width=32", "net.corr_radius=3", "net.crop_resolution=[96,128]", "data.val_images=1",
         "data.val_instances=4", "data.n_points=300", "augmentation.enabled=false", "loop.device=cpu"])
-    task = PoseTask(cfg, tiny_synth_root)
+    task = PoseTask(cfg, root)
     ds = task.train_dataset()
     batch = task.collate([ds[i] for i in range(4)])
     torch.manual_seed(0)
     net = task.build_model()
     opt = torch.optim.Adam(net.parameters(), lr=2e-3)
-    losses = []
-    for _ in range(25):
+    values = []
+    for _ in range(steps):
         torch.manual_seed(0)  # the same input poses every step
         out = task.compute_losses(net, batch, 0, torch.device("cpu"))
         opt.zero_grad()
         out["total"].backward()
         opt.step()
-        losses.append(out["total"].item())
-    assert set(out) == {"total", "flow_ce", "pose", "flow_epe_px", "supervised_cells"} and out["supervised_cells"] > 0.1
-    assert losses[-1] < 0.7 * losses[0], losses
+        values.append(out[term].item())
     torch.manual_seed(0)
     rows = task.objects.index(batch.obj_ids)
-    from cosy_lite.train.pose_task import initial_poses
-
     TCO_in = initial_poses("refiner", batch.TCO, batch.bboxes, batch.K, task.objects.diameters[rows], cfg.noise,
                            training=True)
+    return task, batch, net, out, values, TCO_in
+
+
+def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
+    """Training on the flow loss lowers it, and the fitted network's flow moves the poses towards the GT."""
+    from cosy_lite.nets.render_and_compare import iterate_poses
+    from cosy_lite.train.pose_task import pose_errors
+
+    task, batch, net, out, losses, TCO_in = _fit_one_batch(tiny_synth_root, [], 25, "total")
+    assert set(out) == {"total", "flow_ce", "pose", "flow_epe_px", "supervised_cells"} and out["supervised_cells"] > 0.1
+    assert losses[-1] < 0.7 * losses[0], losses
+    rows = task.objects.index(batch.obj_ids)
     points = task.objects.points[rows]
     with torch.no_grad():
         poses = iterate_poses(net.eval(), batch.rgb.float() / 255, batch.K, TCO_in, batch.obj_ids.tolist(), points,
@@ -310,33 +319,12 @@ def test_init_adds_a_depth_head_to_the_published_refiner(tmp_path):
 def test_a_depth_head_fitted_to_one_batch_corrects_the_depth(tiny_synth_root):
     """Training with a depth head lowers its loss term, and one iteration of the fitted network brings
     the depths of the crops it was fitted on towards the GT (a wrong sign of the ratio would not)."""
-    from cosy_lite.config import load_config
     from cosy_lite.nets.render_and_compare import iterate_poses
-    from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, initial_poses
 
-    cfg = load_config(PoseTrainConfig, None, [
-        "model=refiner", "dataset=tiny", "net.arch=flow", "net.backbone=efficientnet_lite0", "net.depth_head=true",
-        "net.width=32", "net.corr_radius=3", "net.crop_resolution=[96,128]", "data.val_images=1",
-        "data.val_instances=4", "data.n_points=300", "augmentation.enabled=false", "loop.device=cpu"])
-    task = PoseTask(cfg, tiny_synth_root)
-    ds = task.train_dataset()
-    batch = task.collate([ds[i] for i in range(4)])
-    torch.manual_seed(0)
-    net = task.build_model()
-    opt = torch.optim.Adam(net.parameters(), lr=2e-3)
-    depth_terms = []
-    for _ in range(20):
-        torch.manual_seed(0)  # the same input poses every step
-        out = task.compute_losses(net, batch, 0, torch.device("cpu"))
-        opt.zero_grad()
-        out["total"].backward()
-        opt.step()
-        depth_terms.append(out["depth_ratio"].item())
+    task, batch, net, _, depth_terms, TCO_in = _fit_one_batch(tiny_synth_root, ["net.depth_head=true"], 20,
+                                                             "depth_ratio")
     assert depth_terms[-1] < 0.5 * depth_terms[0], depth_terms
-    torch.manual_seed(0)
     rows = task.objects.index(batch.obj_ids)
-    TCO_in = initial_poses("refiner", batch.TCO, batch.bboxes, batch.K, task.objects.diameters[rows], cfg.noise,
-                           training=True)
     with torch.no_grad():
         poses = iterate_poses(net.eval(), batch.rgb.float() / 255, batch.K, TCO_in, batch.obj_ids.tolist(),
                               task.objects.points[rows], task.renderer, 1, (96, 128))
