@@ -133,6 +133,32 @@ def test_two_objects_one_render_call(renderer):
         assert res.accepted and e_t < 2.0 and e_r < 1.0 and res.seconds > 0
 
 
+def test_windows_of_different_sizes_are_rendered_on_canvases_of_their_size(renderer):
+    """A large and a small window: two render calls, each canvas at most twice its window, and each
+    window's depth that of one render of both on the large canvas (to float32 rounding)."""
+    from cosy_lite.inference.icp import _render_windows
+
+    calls = []
+
+    class Counting:
+        def render(self, *args, **kwargs):
+            calls.append(args[3])
+            return renderer.render(*args, **kwargs)
+
+    TCO = np.stack([GT[MUSTARD], GT[DRILL], GT[MUSTARD]])
+    windows = {0: (100, 60, 400, 380), 1: (131, 261, 211, 341), 2: (90, 50, 390, 360)}  # 1: about the drill's origin
+    out = _render_windows(Counting(), [MUSTARD, DRILL, MUSTARD], TCO, K, windows, [0, 1, 2])
+    assert sorted(calls) == [(80, 80), (320, 300)]
+    K_big = np.repeat(K[None], 3, axis=0)
+    K_big[:, 0, 2] -= [w[0] for w in windows.values()]
+    K_big[:, 1, 2] -= [w[1] for w in windows.values()]
+    big = renderer.render([MUSTARD, DRILL, MUSTARD], TCO, K_big, (320, 300), depth_only=True).depth
+    for j, (x0, y0, x1, y1) in windows.items():
+        assert out[j].shape[0] >= y1 - y0 and out[j].shape[1] >= x1 - x0
+        np.testing.assert_allclose(out[j][: y1 - y0, : x1 - x0], big[j][: y1 - y0, : x1 - x0], rtol=0, atol=1e-5)
+    assert (out[0] > 0).mean() > 0.05 and (out[1] > 0).mean() > 0.2
+
+
 def test_symmetric_object(renderer):
     """A cylinder: the turn about its axis is free; given the symmetries, the pose closest to the start is returned."""
     depth, masks = _scene(renderer, [CAN])
