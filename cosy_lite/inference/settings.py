@@ -35,7 +35,7 @@ class InferenceConfig:
     """Everything that decides the poses of an image, apart from the networks and the objects."""
 
     start: str = "coarse"  # a key of STARTS (cosy_lite.inference.starts)
-    n_candidates: int = 1  # template starts: the best templates each get one refiner iteration, the most confident goes on
+    n_candidates: int = 1  # template starts: the best templates; candidate_choice says which goes on
     # which of several candidates goes on: "confidence" (the refiner's, after its one iteration) or "start"
     # (the start stage's best: the RGB poses and time of one candidate; the others go only to ICP, as hypotheses)
     candidate_choice: str = "confidence"
