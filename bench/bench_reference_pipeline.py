@@ -12,6 +12,11 @@ own settings alone. ``--onnx``: the same with the networks of a ``cosy-lite expo
 onnxruntime. The variants are called in turn on every image (round-robin, so they share the
 machine's load); the table gives the median seconds per image and each one's ratio to the first
 variant of its backend and mode.
+
+The settings of the pipeline issue 28 was filed on (964259a: silhouette templates, 5 candidates
+ranked by the refiner's confidence, ICP of the chosen one only), in today's code: ``--variant filed
+start=templates n_candidates=5 candidate_choice=confidence icp_settings.verify_candidates=false``
+(bench/RESULTS.md, session 17, also has that commit's own code timed).
 """
 
 from __future__ import annotations
