@@ -181,8 +181,8 @@ def test_config_checks_name_the_field(tiny_synth_root):
 
 def _fit_one_batch(root, extra: list[str], steps: int, term: str):
     """A small flow refiner on the tiny dataset (``extra`` config overrides) fitted to one batch of 4
-    crops for ``steps`` Adam steps from the same input poses: (config, task, batch, net, the last
-    losses, the loss term ``term`` at every step), and the input poses it was fitted on."""
+    crops for ``steps`` Adam steps from the same input poses: (task, batch, net, the last losses, the
+    loss term ``term`` at every step, the input poses it was fitted on)."""
     from cosy_lite.config import load_config
     from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig, initial_poses
 
