@@ -56,6 +56,21 @@ def test_observations_are_the_instances_of_the_split_with_their_template_errors(
     assert torch.equal(again.train_obs.errors_deg, obs.errors_deg) and torch.equal(again.val_obs.crops, task.val_obs.crops)
 
 
+def test_observations_described_again_when_the_split_gains_a_scene(tiny_synth_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "tiny"
+    shutil.copytree(tiny_synth_root, root)
+    cache_dir = tmp_path / "cache"
+    _, before = _task(root, cache_dir)
+    n_before = len(before.train_obs) + len(before.val_obs)
+    shutil.copytree(root / "train_pbr" / "000000", root / "train_pbr" / "000001")  # a second scene, same images
+    _, after = _task(root, cache_dir)
+    # the new scene's instances are described too (a stale cache would give the old count)
+    assert len(after.train_obs) + len(after.val_obs) == 2 * n_before
+    assert len(list(cache_dir.glob("start_observations_train_*.npz"))) == 2
+
+
 def test_observations_described_by_two_processes_equal_one(tiny_synth_root, cache, monkeypatch):
     from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.train import start_observations

@@ -12,6 +12,7 @@ object. Unannotated things (distractors) count as background, as in CosyPose.
 from __future__ import annotations
 
 import copy
+import hashlib
 from typing import cast
 
 import numpy as np
@@ -72,6 +73,16 @@ class PoseDataset(Dataset):
         out = copy.copy(self)
         out.index = self.index[keep]
         return out
+
+    def fingerprint(self) -> str:
+        """A short sha256 of the items, in order: scene, image, GT index, object and pose of each (what
+        a cache of per-item work must match: scenes added, removed or regenerated change it)."""
+        t = self.table
+        h = hashlib.sha256()
+        for a in (t.scene_ids[t.image_idx[self.index]], t.im_ids[t.image_idx[self.index]], t.gt_idx[self.index],
+                  t.obj_ids[self.index], t.TCO[self.index]):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()[:20]
 
     def instance_counts(self) -> dict[int, int]:
         """obj_id -> number of items."""

@@ -150,7 +150,7 @@ class ScorerTask:
 
     def _observations(self, cache: Path, part: str, key: tuple, instances: Instances, symmetries: dict,
                       progress: bool) -> StartObservations:
-        path = cache / f"start_observations_{part}_{cache_key(part, *key)}.npz"
+        path = cache / f"start_observations_{part}_{cache_key(part, *key, instances.fingerprint())}.npz"
         obs = StartObservations.load(path)
         if obs is None:
             obs = observe_all(instances, self.templates, symmetries, desc=f"describe {part} instances", progress=progress,

@@ -6,7 +6,8 @@ of each of its object's templates, and each template pose's rotation error to GT
 symmetry-aware), the pose placed on the detection exactly as inference places it
 (:meth:`SilhouetteTemplates.observe` / ``poses``). ~80 ms per instance on one core, so a split is
 described once and cached as ``.npz`` (no pickle) keyed by the dataset folder, split, instance
-selection and template settings.
+selection, the instances themselves (scenes added to the split make a new description) and the
+template settings.
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ class Instances(Protocol):
     def __len__(self) -> int: ...
 
     def __getitem__(self, i: int) -> PoseSample: ...
+
+    def fingerprint(self) -> str: ...
 
 
 @dataclass
