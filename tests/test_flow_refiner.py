@@ -331,3 +331,18 @@ def test_a_depth_head_fitted_to_one_batch_corrects_the_depth(tiny_synth_root):
     before = (TCO_in[:, 2, 3] - batch.TCO[:, 2, 3]).abs()
     after = (poses[-1][:, 2, 3] - batch.TCO[:, 2, 3]).abs()
     assert after.mean() < 0.5 * before.mean(), (before, after)
+
+
+def test_pose_errors_depth_ratio_is_the_depth_along_the_gt_line_of_sight():
+    from cosy_lite.train.pose_task import pose_errors
+
+    gt = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    gt[:, :3, 3] = torch.tensor([0.1, 0.0, 0.5])
+    est = gt.clone()
+    est[0, :3, 3] *= 1.1  # 10 % farther along the line of sight
+    est[1, :3, 3] += torch.tensor([0.0, 0.02, 0.0])  # sideways: same depth
+    est[2, :3, 3] *= 0.8
+    points = torch.randn(3, 50, 3, dtype=torch.float64) * 0.05
+    sym = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1, 1)
+    e = pose_errors(est, gt, points, sym, torch.ones(3, 1, dtype=torch.bool))
+    assert torch.allclose(e.depth_ratio, torch.tensor([1.1, 1.0, 0.8]), atol=1e-6)

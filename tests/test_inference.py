@@ -349,3 +349,29 @@ def test_valid_poses_and_orthonormalise():
     assert torch.isnan(fixed[1]).any() and valid_poses(fixed).tolist() == [True, False, False, True, True]
     R = fixed[4, :3, :3]
     assert float((R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-12
+
+
+def test_the_refiner_depth_drift_divides_the_refined_depth_only(tiny_synth_root, ckpts, tmp_path):
+    """InferenceConfig.refiner_depth_drift: the translation after N refiner iterations is divided by the N-th
+    entry (the last one beyond); rotations unchanged; no refiner iteration, no correction."""
+    ds = BopDataset(tiny_synth_root)
+    kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds)
+
+    def run(name: str, **settings):
+        s = run_on_split(Predictor.from_checkpoints(**kw, config=InferenceConfig(**settings)), ds, tmp_path / name,
+                         method=name, detections="oracle", progress=False)
+        return read_results_csv(s.csv_path)
+
+    drift = [1.1, 1.25]
+    plain, corrected = run("plain", n_refiner_iterations=2), run("drift", n_refiner_iterations=2, refiner_depth_drift=drift)
+    beyond = run("beyond", n_refiner_iterations=3, refiner_depth_drift=drift)
+    assert len(plain) == len(corrected) == len(beyond) > 0
+    for a, b, c in zip(plain, corrected, beyond):
+        assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)
+        np.testing.assert_allclose(b.TCO[:3, :3], a.TCO[:3, :3], atol=1e-6)
+        np.testing.assert_allclose(b.TCO[:3, 3], a.TCO[:3, 3] / 1.25, rtol=1e-5)  # 2 iterations: the 2nd entry
+        np.testing.assert_allclose(c.TCO[:3, 3], a.TCO[:3, 3] / 1.25, rtol=1e-5)  # 3: the last entry
+    no_refiner = run("none", n_refiner_iterations=0, refiner_depth_drift=drift)
+    coarse_only = run("coarse", n_refiner_iterations=0)
+    for a, b in zip(coarse_only, no_refiner):
+        np.testing.assert_allclose(b.TCO, a.TCO, atol=1e-6)

@@ -162,7 +162,8 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
     changed = {"start": "templates", "n_candidates": 3, "candidate_choice": "start", "n_refiner_iterations": 2,
                "min_score": 0.25, "max_per_object": 2,
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
-               "fuse_bn": False, "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
+               "fuse_bn": False, "refiner_depth_drift": [1.01, 1.02],
+               "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
     for key, value in changed.items():
         pipeline["inference"] = {"start": "templates", key: value}
@@ -228,6 +229,8 @@ def test_score_refiner_from_gt_starts_at_zero_error_and_measures_the_drift(tiny_
     assert s["start"]["mssd_recall_0.1d"] == 1.0
     # one iteration moves a perfect pose, but by far less than the 15 deg / 1-5 cm it corrects
     assert 0 < s["iter1"]["rot_err_deg_median"] < 10 and s["iter1"]["trans_err_cm_median"] < 3
+    # the signed depth (what InferenceConfig.refiner_depth_drift is measured with): exact at GT, near it after
+    assert s["start"]["depth_ratio_median"] == 1.0 and 0.9 < s["iter1"]["depth_ratio_median"] < 1.1
 
 
 # ----------------------------------------------------------------------------- deliberate bugs (manual runs)

@@ -473,6 +473,10 @@ class Predictor:
                                     self.config.batch_size, model.output)[-1]
             if role == "coarse":
                 TCO_coarse = TCO
+        drift = self.config.depth_drift(self.config.n_refiner_iterations if self.refiner is not None else 0)
+        if drift != 1.0:  # the refiner's own depth bias, measured from GT poses (InferenceConfig.refiner_depth_drift)
+            TCO = TCO.clone()
+            TCO[:, :3, 3] /= drift
         clock.sync()
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent

@@ -40,6 +40,10 @@ class InferenceConfig:
     # (the start stage's best: the RGB poses and time of one candidate; the others go only to ICP, as hypotheses)
     candidate_choice: str = "confidence"
     n_refiner_iterations: int = 4  # after the start (CosyPose: trained with 1, run with 4)
+    # The refiner's own depth bias: its median depth / GT depth after 1, 2, ... iterations started AT the GT
+    # poses of training images (``cosy-lite score-refiner --from-gt --split train_pbr``, "depth_ratio_median").
+    # The refined depth is divided by the entry of the iterations run (the last entry beyond); empty: none.
+    refiner_depth_drift: list[float] = field(default_factory=list)
     min_score: float = 0.0  # pose only detections scoring at least this (BOP19: any threshold lowers AR)
     one_per_region: bool = False  # at most one detection per image region (mask IoU > 0.5, any class)
     max_per_object: int = 0  # at most this many detections per object and image, the best scored (0: no limit)
@@ -62,6 +66,9 @@ class InferenceConfig:
         for name, ok, expected in checks:
             if not ok:
                 raise FieldValueError(name, f"{getattr(self, name)!r}: expected {expected}")
+        if not all(isinstance(r, (int, float)) and 0.5 <= r <= 2.0 for r in self.refiner_depth_drift):
+            raise FieldValueError("refiner_depth_drift", f"{self.refiner_depth_drift!r}: expected depth ratios in "
+                                  "[0.5, 2] (the refiner's median depth / GT depth per iteration, e.g. [1.006, 1.01])")
         if self.n_candidates > 1 and self.start not in TEMPLATE_STARTS:
             raise FieldValueError("n_candidates", f"{self.n_candidates} needs a template start ({list(TEMPLATE_STARTS)}), "
                              f"not start = {self.start!r}")
@@ -71,6 +78,11 @@ class InferenceConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+    def depth_drift(self, n_iterations: int) -> float:
+        """The refiner's depth ratio after ``n_iterations`` (:attr:`refiner_depth_drift`; 1.0: none)."""
+        drift = self.refiner_depth_drift
+        return float(drift[min(n_iterations, len(drift)) - 1]) if drift and n_iterations >= 1 else 1.0
 
 
 def inference_config(base: Mapping[str, Any] | None = None, base_source: str | Path = "",

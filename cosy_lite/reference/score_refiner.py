@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -82,7 +83,7 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
                                            {"rot_deg": NOISE_ROT_DEG, "trans_m": list(NOISE_TRANS_M)})}
     for k in keys:
         e = errors[k]
-        joined = PoseErrors(*(torch.cat([getattr(x, f) for x in e]) for f in ("rot_deg", "trans_m", "adds_m", "mssd_m")))
+        joined = PoseErrors(*(torch.cat([getattr(x, f.name) for x in e]) for f in fields(PoseErrors)))
         out[k] = {name: round(v, 4) for name, v in joined.summary(diam).items()}
     return out
 

@@ -119,12 +119,14 @@ def initial_poses(model: str, TCO_gt: Tensor, boxes: Tensor, K: Tensor, diameter
 @dataclass
 class PoseErrors:
     """Per-item errors of poses against GT (symmetry-aware): rotation (deg), translation (m), ADD-S
-    and MSSD (m, over the loss points and the loss symmetry set)."""
+    and MSSD (m, over the loss points and the loss symmetry set), and the depth along the line of
+    sight as a ratio to the GT's (> 1: too far; the translation projected on the GT's)."""
 
     rot_deg: Tensor
     trans_m: Tensor
     adds_m: Tensor
     mssd_m: Tensor
+    depth_ratio: Tensor
 
     def summary(self, diameters: Tensor, prefix: str = "") -> dict[str, float]:
         return {
@@ -132,6 +134,7 @@ class PoseErrors:
             f"{prefix}trans_err_cm_median": float(100 * self.trans_m.median()),
             f"{prefix}adds_recall_0.1d": float((self.adds_m < 0.1 * diameters).float().mean()),
             f"{prefix}mssd_recall_0.1d": float((self.mssd_m < 0.1 * diameters).float().mean()),
+            f"{prefix}depth_ratio_median": float(self.depth_ratio.median()),
         }
 
 
@@ -152,7 +155,9 @@ def pose_errors(TCO: Tensor, TCO_gt: Tensor, points: Tensor, symmetries: Tensor,
     cand = TCO_gt[:, None] @ symmetries  # [B,S,4,4]
     p_sym = torch.einsum("bsij,bnj->bsni", cand[..., :3, :3], points) + cand[..., None, :3, 3]
     mssd = (p_sym - p_est[:, None]).norm(dim=-1).amax(dim=-1).masked_fill(~sym_mask, float("inf")).amin(dim=1)
-    return PoseErrors(rot.float(), trans.float(), adds.float(), mssd.float())
+    t_gt = TCO_gt[:, :3, 3]
+    depth_ratio = (TCO[:, :3, 3] * t_gt).sum(dim=-1) / (t_gt * t_gt).sum(dim=-1)
+    return PoseErrors(rot.float(), trans.float(), adds.float(), mssd.float(), depth_ratio.float())
 
 
 class PoseTask:
