@@ -187,8 +187,7 @@ def test_templates_are_kept_between_runs_by_default(tmp_path, monkeypatch):
     assert templates_cache(argparse.Namespace(templates_cache=Path("mine"))) == Path("mine")
 
 
-def test_refiner_depth_drift_is_read_checked_and_indexed_by_iterations(tmp_path):
-
+def test_refiner_depth_drift_is_read_checked_and_indexed_by_iterations():
     cfg = inference_config(None, "", None, ["refiner_depth_drift=[1.005, 1.01]"])
     assert cfg.refiner_depth_drift == [1.005, 1.01]
     assert (cfg.depth_drift(0), cfg.depth_drift(1), cfg.depth_drift(2), cfg.depth_drift(4)) == (1.0, 1.005, 1.01, 1.01)

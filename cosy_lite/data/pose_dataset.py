@@ -77,10 +77,9 @@ class PoseDataset(Dataset):
     def fingerprint(self) -> str:
         """A short sha256 of the items, in order: scene, image, GT index, object and pose of each (what
         a cache of per-item work must match: scenes added, removed or regenerated change it)."""
-        t = self.table
+        t, rows = self.table, self.table.image_idx[self.index]
         h = hashlib.sha256()
-        for a in (t.scene_ids[t.image_idx[self.index]], t.im_ids[t.image_idx[self.index]], t.gt_idx[self.index],
-                  t.obj_ids[self.index], t.TCO[self.index]):
+        for a in (t.scene_ids[rows], t.im_ids[rows], t.gt_idx[self.index], t.obj_ids[self.index], t.TCO[self.index]):
             h.update(np.ascontiguousarray(a).tobytes())
         return h.hexdigest()[:20]
 
