@@ -105,7 +105,7 @@ class _InlineExecutor:
 def phase_timers(seconds: dict[str, float]):
     """Wrap the evaluator's functions with wall-clock timers; ``seconds`` gets phase -> s (outermost
     call only, so nested phases are not counted twice). "load" = the rest (dataset, models, CSV, symmetries,
-    GL set-up, Python glue)."""
+    Python glue)."""
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.eval import evaluator, image_errors
     from cosy_lite.eval.depth_renderer import WindowDepthRenderer

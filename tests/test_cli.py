@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_wrappers_parse_exactly_the_sub_command_arguments(argv):
     full = vars(cli.build_parser().parse_args(argv))
     alone = vars(cli.command_parser(argv[0], f"{argv[0]}.py").parse_args(argv[1:]))
-    assert full == alone and full["command"] == argv[0]
+    only = vars(cli.build_parser(only=argv[0]).parse_args(argv))
+    assert full == alone == only and full["command"] == argv[0]
 
 
 @pytest.mark.parametrize("prog, expected", [(None, "cosy-lite train: error:"), ("train.py", "train.py: error:")])

@@ -8,8 +8,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from cosy_lite.eval.depth_renderer import Window, WindowDepthRenderer
-from cosy_lite.render.gl import projection_matrices
 from cosy_lite.render.renderer import GlRenderer
 
 BOX, SPHERE = 1, 2
@@ -43,8 +41,6 @@ class Kinds:
         meshes = _meshes()
         make = {
             "render_and_compare": lambda: GlRenderer(meshes, shading="headlight"),
-            "depth_windows": lambda: WindowDepthRenderer(
-                {i: (m.vertices, m.faces) for i, m in meshes.items()}, RES[1], RES[0]),
             "pictures": lambda: GlRenderer(meshes),
             "lit_scenes": lambda: OffscreenSceneRenderer(RES[1], RES[0]),
         }
@@ -58,9 +54,6 @@ class Kinds:
         if kind == "render_and_compare":
             out = r.render([BOX, SPHERE], POSES, K, RES)
             return [out.rgb, out.depth]
-        if kind == "depth_windows":
-            return [r.render(BOX, POSES[0], K, Window(0, 0, RES[1], RES[0])),
-                    r.render(SPHERE, POSES[1], K, Window(30, 20, 90, 70))]
         if kind == "pictures":
             return [r.render([SPHERE, BOX], POSES, K, RES, depth_only=True).depth]
         return list(r.render(_lit_scene(), flags=0))
@@ -83,7 +76,7 @@ def _lit_scene():
     return scene
 
 
-ORDER = ["render_and_compare", "depth_windows", "pictures", "lit_scenes"]
+ORDER = ["render_and_compare", "pictures", "lit_scenes"]
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -113,31 +106,3 @@ def test_closing_one_renderer_leaves_the_others_rendering_the_same(closed: str, 
                 np.testing.assert_array_equal(a, b)
     finally:
         kinds.close_all()
-
-
-def test_window_pass_samples_the_pixels_of_a_full_render():
-    """The evaluator's pass (window y = H - v, clip = P (MV p)) and the crops' pass (window y = v,
-    one MVP) cover the same pixel centres, with the same camera z up to float32 rounding."""
-    meshes = _meshes()
-    with GlRenderer(meshes, cull_back_faces=False) as r:
-        full = r.render([BOX, SPHERE], POSES, K, RES, depth_only=True).depth
-        for i, (obj_id, T) in enumerate(zip([BOX, SPHERE], POSES)):
-            window = r.render_depth_window(obj_id, T, K, RES, (0, 0, RES[1], RES[0]), znear=0.2, zfar=1.5)
-            np.testing.assert_array_equal(window > 0, full[i] > 0)
-            np.testing.assert_allclose(window, full[i], rtol=0, atol=1e-6)
-            part = r.render_depth_window(obj_id, T, K, RES, (30, 20, 90, 70), znear=0.2, zfar=1.5)
-            np.testing.assert_array_equal(part, window[20:70, 30:90])
-        with pytest.raises(ValueError, match="not inside"):
-            r.render_depth_window(BOX, POSES[0], K, RES, (0, 0, RES[1] + 1, RES[0]))
-        assert r.render_depth_window(BOX, POSES[0], K, RES, (5, 5, 5, 9)).shape == (4, 0)
-
-
-def test_projection_y_up_mirrors_the_rows():
-    P_down = projection_matrices(K[None], RES, 0.1, 2.0)[0]
-    P_up = projection_matrices(K[None], RES, 0.1, 2.0, y_up=True)[0]
-    p = np.array([0.03, -0.02, 0.7, 1.0])
-    v = K[1, 1] * p[1] / p[2] + K[1, 2]  # image row coordinate of p
-    for P, expected in ((P_down, v), (P_up, RES[0] - v)):
-        clip = P @ p
-        assert (clip[1] / clip[3] + 1.0) * RES[0] / 2.0 == pytest.approx(expected)
-    np.testing.assert_array_equal(np.delete(P_down, 1, axis=0), np.delete(P_up, 1, axis=0))

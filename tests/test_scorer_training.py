@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from cosy_lite.config import load_config
-from cosy_lite.nets.appearance_scorer import listwise_loss
+from cosy_lite.nets.appearance_scorer import flip_loss, listwise_loss
 from cosy_lite.train.loop import train
 from cosy_lite.train.scorer_task import ScorerTask, ScorerTrainConfig, augment_crops
 from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint
@@ -38,6 +38,15 @@ def test_listwise_loss_by_hand():
     # no template within 15 deg: the closest one is the positive
     far = torch.tensor([[40.0, 90.0, 30.0]])
     assert listwise_loss(scores, far, torch.tensor(2.0)) == pytest.approx(float(-log_p[2]))
+
+
+def test_flip_loss_by_hand():
+    scores = torch.tensor([[0.5, 0.9, 0.2, 0.7], [0.1, 0.3, 0.2, 0.0]])
+    errors = torch.tensor([[5.0, 170.0, 160.0, 90.0], [20.0, 100.0, 140.0, 10.0]])
+    # row 0: closest (5 deg) scores 0.5, the best flipped (> 150 deg) 0.9; row 1 has no flipped hypothesis
+    expected = torch.nn.functional.softplus(torch.tensor(3.0 * (0.9 - 0.5)))
+    assert flip_loss(scores, errors, torch.tensor(3.0), 150.0) == pytest.approx(float(expected))
+    assert flip_loss(scores[1:], errors[1:], torch.tensor(3.0), 150.0) == 0.0
 
 
 def test_observations_are_the_instances_of_the_split_with_their_template_errors(tiny_synth_root, cache):

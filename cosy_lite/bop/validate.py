@@ -197,7 +197,8 @@ def _check_model_file(ply: Path, info_path: Path, obj_id: int, diameter_mm: floa
         ))
 
 
-def _check_models(root: Path, params: DatasetParams | None, out: _Collector) -> set[int] | None:
+def _check_models(root: Path, params: DatasetParams | None, out: _Collector,
+                  model_dirs: tuple[str, ...] = MODEL_DIRS) -> set[int] | None:
     """Check models_info.json and the model files; return the obj ids (None if unknown)."""
     info_path = root / "models" / "models_info.json"
     infos = out.load(io.load_models_info, info_path)
@@ -211,7 +212,7 @@ def _check_models(root: Path, params: DatasetParams | None, out: _Collector) -> 
     obj_ids = set(diameters)
     if params is not None and (extra := sorted(obj_ids - set(params.obj_ids))):
         out.warning(info_path, "", f"obj_ids {_short(extra)} are not objects of {params.name} {list(params.obj_ids)}")
-    for folder in MODEL_DIRS:
+    for folder in model_dirs:
         d = root / folder
         if not d.is_dir():
             out.error(d, "", f"folder not found (BOP needs {folder}/obj_XXXXXX.ply for every obj_id of {info_path})")
@@ -441,6 +442,7 @@ def _check_image_targets(root: Path, params: DatasetParams | None, index: dict[s
 
 def check_dataset(
     root: str | Path, name: str | None = None, splits: list[str] | None = None, check_images: bool = True,
+    model_dirs: tuple[str, ...] = MODEL_DIRS,
 ) -> list[Problem]:
     """Check a BOP dataset folder: models, every scene of every split, test targets.
 
@@ -449,6 +451,7 @@ def check_dataset(
         name: key into the dataset parameter table (image sizes, obj ids); default: folder name.
         splits: split folders to check; default: every folder except ``models*``.
         check_images: read image headers (sizes vs params, rgb vs depth, principal point inside).
+        model_dirs: the model folders whose meshes are read and checked (``models_info.json`` always is).
     """
     from tqdm import tqdm
 
@@ -464,7 +467,7 @@ def check_dataset(
     if params is None:
         out.warning(root, "name", f"dataset {name!r} is not in the parameter table ({sorted(DATASETS)}): "
                     "image sizes only checked against each other")
-    obj_ids = _check_models(root, params, out)
+    obj_ids = _check_models(root, params, out, model_dirs)
     present = split_folders(root)
     if not present and not splits:
         out.warning(root, "", "no split folders (e.g. train_pbr/, test/)")

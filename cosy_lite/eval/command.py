@@ -153,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
                              allow_unknown_objects=task == "6d-detection")
     if root.is_dir():  # (a missing folder is reported by check_results)
         split = eval_split(dataset_name_of(root, args.name), args.split)
-        problems += check_dataset(root, args.name, splits=[split])
+        problems += check_dataset(root, args.name, splits=[split], model_dirs=("models_eval",))  # what it reads
         targets = TARGETS_FILE if task == "6d-localization" else "test_targets_bop24.json"
         if not (root / targets).is_file():
             problems.append(Problem(str(root / targets), "", f"file not found: the {task} evaluation scores "
@@ -166,8 +166,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_6d_detection(args, root)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
-                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None),
-                      load_torchvision=not getattr(args, "whole_process", False))  # nothing else runs here
+                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None))
     print(format_table(result))
     out = args.out or scores_folder(args.results)
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")
@@ -204,7 +203,7 @@ def _run_2d(args: argparse.Namespace, root: Path, task: str) -> int:
         return report([Problem(str(root), "", "dataset folder not found")], f"{args.results} on {root}")
     split = eval_split(dataset_name_of(root, args.name), args.split)
     targets = root / (args.targets or TARGETS_FILE)
-    problems = check_dataset(root, args.name, splits=[split])
+    problems = check_dataset(root, args.name, splits=[split], model_dirs=())  # no mesh is read
     if not targets.is_file():
         problems.append(Problem(str(targets), "", f"file not found: the {task} evaluation scores the images it lists"))
     if not args.results.is_file():

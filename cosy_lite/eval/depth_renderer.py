@@ -1,17 +1,15 @@
-"""Depth of single objects inside image windows, for VSD: the evaluator's view of the one renderer.
+"""Depth of single objects inside image windows, for VSD.
 
 VSD only needs the depth of one object at a time, and only where the object is: each render
-draws and reads back only a *window* of the image (the projected bounds of the object, see
+covers only a *window* of the image (the projected bounds of the object, see
 :func:`object_window`), with the full image's projection, so the pixels inside the window are
-exactly those of a full-image render (no principal-point shift, no resampling). The rendering is
-:meth:`cosy_lite.render.renderer.GlRenderer.render_depth_window` (the project's one GL
-stack, :mod:`cosy_lite.render.gl`); this module adds the toolkit's conventions: two-sided faces and
-clipping planes around the object's bounding box.
+exactly those of a full-image render (no principal-point shift, no resampling). The rasteriser is
+:func:`cosy_lite.render.depth_raster.rasterize_depth` (CPU, no GL context: the toolkit's
+conventions, two-sided faces); this module adds the windows and the near clipping plane.
 
 Conventions (as bop_toolkit's ``renderer_vispy``): OpenCV camera, the pixel of row ``r``, column
 ``c`` is sampled at ``(u, v) = (c + 0.5, r + 0.5)``; depth = the camera Z of the visible surface
-(m), 0 where the object is not rendered. The depth is written by the fragment shader
-(interpolated camera Z, float32), not decoded from the depth buffer.
+(m), 0 where the object is not rendered.
 """
 
 from __future__ import annotations
@@ -77,73 +75,57 @@ def object_window(pts: np.ndarray, TCO: np.ndarray, K: np.ndarray, width: int, h
 
 
 class WindowDepthRenderer:
-    """Depth of one object at a time, read back inside a window (see module docstring).
+    """Depth of one object at a time, inside a window (see module docstring).
 
     Args:
-        meshes: obj_id -> (vertices [N,3] m, faces [F,3] int); uploaded on first use, once.
+        meshes: obj_id -> (vertices [N,3] m, faces [F,3] int).
         width, height: image size (px).
-        load_torchvision: see :class:`~cosy_lite.render.gl.EglContext` (False only in a process
-            that never imports torchvision: ~2 s less to start).
-    The GL context is created on the first render, in the process that renders. Use as a context
-    manager, or call :meth:`close` (which leaves the other renderers of the process working).
     """
 
-    def __init__(self, meshes: dict[int, tuple[np.ndarray, np.ndarray]], width: int, height: int,
-                 load_torchvision: bool = True):
-        import trimesh
-
-        from cosy_lite.render.renderer import GlRenderer
+    def __init__(self, meshes: dict[int, tuple[np.ndarray, np.ndarray]], width: int, height: int):
+        from cosy_lite.render.depth_raster import mesh_arrays
 
         self.width, self.height = int(width), int(height)
-        models: dict[int, trimesh.Trimesh] = {}
+        self._meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._corners: dict[int, np.ndarray] = {}  # obj_id -> [8,3] bounding box corners (m)
         for obj_id, (vertices, faces) in meshes.items():
-            v = np.asarray(vertices, dtype=np.float32)
-            f = np.asarray(faces)
-            if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or f.size == 0 or f.max() >= len(v):
-                raise ValueError(f"obj_id {obj_id}: expected vertices [N,3] and faces [F,3] indexing them")
-            models[int(obj_id)] = trimesh.Trimesh(v, f.reshape(-1, 3), process=False)
-            lo, hi = v.min(axis=0).astype(np.float64), v.max(axis=0).astype(np.float64)
+            try:
+                v, f = self._meshes[int(obj_id)] = mesh_arrays(vertices, faces)
+            except ValueError as e:
+                raise ValueError(f"obj_id {obj_id}: {e}") from None
+            lo, hi = v.min(axis=0), v.max(axis=0)
             self._corners[int(obj_id)] = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
-        # Two-sided, as the toolkit: no back-face culling, whatever the mesh.
-        self._renderer = GlRenderer(models, cull_back_faces=False, load_torchvision=load_torchvision)
 
-    def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
+    def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window, distance: bool = False) -> np.ndarray:
         """Depth [h,w] float32 (m, 0 = background) of object ``obj_id`` at ``TCO`` [4,4] inside ``window``.
 
         ``K`` [3,3] is the full image's intrinsics; the result equals ``full[y0:y1, x0:x1]`` of a
-        full-image render wherever the object's projection lies inside the window.
+        full-image render wherever the object's projection lies inside the window. ``distance``:
+        float64 distances from the camera centre instead (see
+        :func:`~cosy_lite.render.depth_raster.rasterize_depth`).
         """
-        return self.render_many([(obj_id, TCO, window)], K)[0]
+        from cosy_lite.render.depth_raster import rasterize_depth
 
-    def render_many(self, items: list[tuple[int, np.ndarray, Window]], K: np.ndarray) -> list[np.ndarray]:
-        """:meth:`render` of every ``(obj_id, TCO, window)``, drawn as one batch (the same pixels)."""
-        from cosy_lite.render.renderer import DepthWindow
+        if obj_id not in self._corners:
+            raise KeyError(f"no mesh for obj_id {obj_id}; known: {sorted(self._corners)}")
+        outside = window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height
+        if outside and not window.empty:
+            raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
+        TCO = np.asarray(TCO, dtype=np.float64)
+        z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
+        if window.empty or z.max() <= NEAR_MIN_M:
+            return np.zeros(window.shape, np.float64 if distance else np.float32)
+        near = max(NEAR_MIN_M, 0.5 * float(z.min()))  # as the toolkit: the plane only cuts what touches the camera
+        return rasterize_depth(*self._meshes[obj_id], TCO, K, (window.x0, window.y0, window.x1, window.y1), near,
+                               distance)
 
-        out: list[np.ndarray | None] = []
-        batch: list[DepthWindow] = []
-        for obj_id, TCO, window in items:
-            if obj_id not in self._corners:
-                raise KeyError(f"no mesh for obj_id {obj_id}; known: {sorted(self._corners)}")
-            outside = window.x0 < 0 or window.y0 < 0 or window.x1 > self.width or window.y1 > self.height
-            if outside and not window.empty:
-                raise ValueError(f"{window} is not inside the {self.width}x{self.height} image")
-            TCO = np.asarray(TCO, dtype=np.float64)
-            z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
-            if window.empty or z.max() <= NEAR_MIN_M:
-                out.append(np.zeros(window.shape, np.float32))
-                continue
-            # Clipping planes around the object's bounding box (as the toolkit), with room to spare.
-            near = max(NEAR_MIN_M, 0.5 * float(z.min()))
-            far = 2.0 * float(z.max()) + 0.01
-            out.append(None)
-            batch.append(DepthWindow(obj_id, TCO, (window.x0, window.y0, window.x1, window.y1), near, far))
-        drawn = iter(self._renderer.render_depth_windows(batch, K, (self.height, self.width)) if batch else [])
-        return [next(drawn) if d is None else d for d in out]
+    def render_many(self, items: list[tuple[int, np.ndarray, Window]], K: np.ndarray,
+                    distance: bool = False) -> list[np.ndarray]:
+        """:meth:`render` of every ``(obj_id, TCO, window)``."""
+        return [self.render(obj_id, TCO, K, window, distance) for obj_id, TCO, window in items]
 
     def close(self) -> None:
-        """Free this renderer's GL context (idempotent); other renderers of the process keep theirs."""
-        self._renderer.close()
+        """Nothing to free (kept for the context-manager use of the evaluator)."""
 
     def __enter__(self) -> WindowDepthRenderer:
         return self

@@ -135,8 +135,7 @@ class _ImageEvaluation:
     the same arguments in every process that runs it."""
 
     def __init__(self, dataset_root: str | Path, results_csv: str | Path, split: str | None, name: str | None,
-                 max_sym_disc_step: float, sym_zero_angle: bool, visib_gt_min: float, auc: bool, *,
-                 load_torchvision: bool = True):
+                 max_sym_disc_step: float, sym_zero_angle: bool, visib_gt_min: float, auc: bool):
         from cosy_lite.bop.params import DATASETS
 
         self.ds = ds = BopDataset(Path(dataset_root), name or "")
@@ -151,7 +150,6 @@ class _ImageEvaluation:
         self._symmetries = (max_sym_disc_step, sym_zero_angle)
         self.sp = ds.split_params(self.split)
         self.renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
-        self.load_torchvision = load_torchvision
 
     @cached_property
     def meshes(self) -> dict:
@@ -173,8 +171,7 @@ class _ImageEvaluation:
     def renderer(self, w: int, h: int) -> WindowDepthRenderer:
         if (w, h) not in self.renderers:
             self.renderers[(w, h)] = WindowDepthRenderer(
-                {o: (np.asarray(m.vertices), np.asarray(m.faces)) for o, m in self.meshes.items()}, w, h,
-                self.load_torchvision)
+                {o: (np.asarray(m.vertices), np.asarray(m.faces)) for o, m in self.meshes.items()}, w, h)
         return self.renderers[(w, h)]
 
     def run(self, keys: list[ImageKey], progress: bool = False) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
@@ -220,12 +217,6 @@ class _ImageEvaluation:
             pool.shutdown(cancel_futures=True)
         return out, im_width
 
-    def close(self) -> None:
-        for r in self.renderers.values():
-            r.close()
-        self.renderers.clear()
-
-
 MAX_AUTO_WORKERS = 4  # workers=None: one process per available core, at most this many ...
 MIN_IMAGES_PER_WORKER = 10  # ... and no more than one per this many images (a spawned worker costs ~2 s to start)
 
@@ -242,7 +233,7 @@ _WORKER: _ImageEvaluation | None = None  # a worker process's evaluation (evalua
 
 def _init_worker(*args) -> None:
     global _WORKER
-    _WORKER = _ImageEvaluation(*args, load_torchvision=False)  # a spawned process that only evaluates
+    _WORKER = _ImageEvaluation(*args)
 
 
 def _run_worker(keys: list[ImageKey]) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
@@ -287,7 +278,6 @@ def evaluate(
     progress: bool = True,
     auc: bool = False,
     workers: int | None = 1,
-    load_torchvision: bool = True,
 ) -> EvalResult:
     """Compute VSD, MSSD and MSPD (and ADD, ADI with ``auc``) of every evaluated estimate and score them (BOP19).
 
@@ -307,23 +297,17 @@ def evaluate(
             not part of BOP19, which the toolkit's evaluation computes without; ~40 % more time).
         workers: processes computing the errors (images split between them; the same scores as 1);
             None: :func:`auto_workers` of the number of images.
-        load_torchvision: False only in a process that will never import torchvision (as
-            ``cosy-lite eval``'s): its renderer then starts ~2 s sooner (see
-            :class:`~cosy_lite.render.gl.EglContext`). Worker processes never load it.
     """
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1 (or None: automatic), got {workers}")
     t0 = time.perf_counter()
     args = (dataset_root, results_csv, split, name, max_sym_disc_step, sym_zero_angle, visib_gt_min, auc)
-    ev = _ImageEvaluation(*args, load_torchvision=load_torchvision)
+    ev = _ImageEvaluation(*args)
     keys = sorted(ev.by_image)
     if workers is None:
         workers = auto_workers(len(keys))
     if workers == 1 or len(keys) < 2:
-        try:
-            errors, im_width = ev.run(keys, progress)
-        finally:
-            ev.close()
+        errors, im_width = ev.run(keys, progress)
     else:
         errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress)
     out = [te for k in keys for te in errors[k]]

@@ -135,9 +135,9 @@ class ImageErrors:
         r = self.renderer
         todo = [(key, obj_id, object_window(obj.hull, TCO, self.K, r.width, r.height), TCO)
                 for key, obj_id, obj, TCO in dict((p[0], p) for p in poses).values() if key not in self._rendered]
-        depths = r.render_many([(obj_id, TCO, win) for _, obj_id, win, TCO in todo], self.K)
-        for (key, _, win, _), depth in zip(todo, depths):
-            self._rendered[key] = (win, distance_map(depth, self.K, win))
+        dists = r.render_many([(obj_id, TCO, win) for _, obj_id, win, TCO in todo], self.K, distance=True)
+        for (key, _, win, _), dist in zip(todo, dists):
+            self._rendered[key] = (win, dist)
 
     def prefetch(self, targets: list[tuple[int, ObjectErrors, list[PoseEstimate], list[np.ndarray], list[int]]]) -> None:
         """Render, as one batch, every pose that :meth:`target` of these ``(obj_id, obj, ests,

@@ -77,3 +77,16 @@ def listwise_loss(scores: Tensor, errors_deg: Tensor, logit_scale: Tensor, posit
     target[torch.arange(len(target)), errors_deg.argmin(dim=1)] = 1.0
     target = target / target.sum(dim=1, keepdim=True)
     return -(target * F.log_softmax(logit_scale * scores, dim=1)).sum(dim=1).mean()
+
+
+def flip_loss(scores: Tensor, errors_deg: Tensor, logit_scale: Tensor, flipped_deg: float) -> Tensor:
+    """The hard negative the listwise loss does not single out: ``softplus(logit_scale x (best
+    score of a hypothesis more than flipped_deg off - score of the closest hypothesis))`` [B,N] ->
+    scalar, averaged over the instances that have such a hypothesis (0 when none has)."""
+    flipped = errors_deg > flipped_deg
+    has = flipped.any(dim=1)
+    if not bool(has.any()):
+        return scores.sum() * 0.0
+    closest = scores.gather(1, errors_deg.argmin(dim=1, keepdim=True))[:, 0]
+    worst = scores.masked_fill(~flipped, float("-inf")).max(dim=1).values
+    return F.softplus(logit_scale * (worst[has] - closest[has])).mean()

@@ -27,27 +27,20 @@ def use_egl() -> None:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 
-def projection_matrices(
-    K: np.ndarray, resolution: tuple[int, int], znear: float, zfar: float, y_up: bool = False
-) -> np.ndarray:
+def projection_matrices(K: np.ndarray, resolution: tuple[int, int], znear: float, zfar: float) -> np.ndarray:
     """Clip-from-camera matrices [B,4,4] for OpenCV cameras K [B,3,3] (skew kept), image (H, W).
 
     Window x = u and window y = v (not H - v): the framebuffer's first row is the image's top row,
-    so read-back needs no flip (and outward counter-clockwise faces appear clockwise). ``y_up``:
-    window y = H - v instead (OpenGL's and the BOP toolkit's renderer's way; rows read back
-    bottom-up). Either way the pixel centres are sampled. Camera z in [znear, zfar] (m) maps to NDC [-1, 1].
+    so read-back needs no flip (and outward counter-clockwise faces appear clockwise). The pixel
+    centres are sampled. Camera z in [znear, zfar] (m) maps to NDC [-1, 1].
     """
     H, W = resolution
     P = np.zeros((len(K), 4, 4))
     P[:, 0, 0] = 2.0 * K[:, 0, 0] / W
     P[:, 0, 1] = 2.0 * K[:, 0, 1] / W
     P[:, 0, 2] = 2.0 * K[:, 0, 2] / W - 1.0
-    if y_up:
-        P[:, 1, 1] = -2.0 * K[:, 1, 1] / H
-        P[:, 1, 2] = 1.0 - 2.0 * K[:, 1, 2] / H
-    else:
-        P[:, 1, 1] = 2.0 * K[:, 1, 1] / H
-        P[:, 1, 2] = 2.0 * K[:, 1, 2] / H - 1.0
+    P[:, 1, 1] = 2.0 * K[:, 1, 1] / H
+    P[:, 1, 2] = 2.0 * K[:, 1, 2] / H - 1.0
     P[:, 2, 2] = (zfar + znear) / (zfar - znear)
     P[:, 2, 3] = -2.0 * zfar * znear / (zfar - znear)
     P[:, 3, 2] = 1.0

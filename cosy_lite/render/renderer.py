@@ -1,7 +1,7 @@
 """Batched renderer of objects alone on black: RGB, depth and mask of B crops (or full images) in
-one call; and the depth of one object inside a window of an image, for the evaluator's VSD
-(:meth:`GlRenderer.render_depth_window`). Used by render-and-compare, ICP, the silhouette
-templates, the evaluator and the pictures; its context is :mod:`.gl`'s.
+one call. Used by render-and-compare, ICP, the silhouette and appearance templates and the
+pictures; its context is :mod:`.gl`'s. (The evaluator's depth windows are rasterised on the CPU:
+:mod:`.depth_raster`.)
 
 Conventions: ``TCO`` object-to-camera (m), OpenCV camera, ``K`` in pixels, ``resolution=(H, W)``.
 Pixel ``(row r, column c)`` is sampled at ``(u, v) = (c + 0.5, r + 0.5)`` (as :mod:`.gl` and the
@@ -46,19 +46,6 @@ if TYPE_CHECKING:
 Resolution = tuple[int, int]  # (H, W) pixels
 CULL_CHECK_SIZE = 64  # px, side of the 14 views rendered to decide whether a mesh may be back-face culled
 MAX_IN_FLIGHT_PIXELS = 1 << 22  # crops drawn before read-back hold at most this many pixels (12 B each)
-WINDOW_BATCH = 16  # depth windows drawn before read-back (one full-image framebuffer each)
-
-
-@dataclass(frozen=True)
-class DepthWindow:
-    """One item of :meth:`GlRenderer.render_depth_windows`: object, pose [4,4] (m), window
-    (x0, y0, x1, y1) in image pixels, clipping planes (m; None: the renderer's)."""
-
-    obj_id: int
-    TCO: Any
-    window: tuple[int, int, int, int]
-    znear: float | None = None
-    zfar: float | None = None
 
 
 @dataclass
@@ -263,18 +250,6 @@ layout(location = 1) out float depth;""" + _SHADE + """
 void main() { color = shade(v_attribute); depth = v_z; }
 """,
 }
-# The evaluator's window depth (see _window_depth_draw): P and MV apart, as the BOP toolkit's renderer.
-_WINDOW_VERTEX_SHADER = """#version 330 core
-layout(location = 0) in vec3 position;
-uniform mat4 P;   // clip <- camera, window y = H - v
-uniform mat4 MV;  // camera <- object (TCO)
-out float v_z;
-void main() {
-    vec4 p = MV * vec4(position, 1.0);
-    v_z = p.z;
-    gl_Position = P * p;
-}
-"""
 SHADINGS = ("flat", "headlight")  # flat: the colours as they are; headlight: shaded (see _SHADE)
 AMBIENT = 0.35  # share of the light that does not depend on the surface orientation (headlight)
 
@@ -300,7 +275,7 @@ class _Framebuffer:
 class _GlState:
     context: EglContext
     programs: dict[str, int]
-    uniforms: dict[str, tuple[int, int, int]]  # kind -> (MVP, z_row, MV) locations; window_depth: (P, -1, MV)
+    uniforms: dict[str, tuple[int, int, int]]  # kind -> (MVP, z_row, MV) locations
     max_size: int  # largest framebuffer side (GL_MAX_RENDERBUFFER_SIZE, GL_MAX_VIEWPORT_DIMS)
     meshes: dict[int, _GpuMesh] = field(default_factory=dict)
     framebuffers: dict[Resolution, list[_Framebuffer]] = field(default_factory=dict)  # one per crop in flight
@@ -320,11 +295,6 @@ def _create_gl_state(device_index: int | None, load_torchvision: bool = True) ->
     }
     uniforms = {k: (gl.glGetUniformLocation(p, "MVP"), gl.glGetUniformLocation(p, "z_row"), gl.glGetUniformLocation(p, "MV"))
                 for k, p in programs.items()}
-    programs["window_depth"] = shaders.compileProgram(
-        shaders.compileShader(_WINDOW_VERTEX_SHADER, gl.GL_VERTEX_SHADER),
-        shaders.compileShader(_FRAGMENT_SHADERS["depth"], gl.GL_FRAGMENT_SHADER), validate=False)
-    uniforms["window_depth"] = (gl.glGetUniformLocation(programs["window_depth"], "P"), -1,
-                                gl.glGetUniformLocation(programs["window_depth"], "MV"))
     for kind in ("texture", "texture_lit"):
         gl.glUseProgram(programs[kind])
         gl.glUniform1i(gl.glGetUniformLocation(programs[kind], "color_texture"), 0)
@@ -413,7 +383,7 @@ def _create_framebuffer(width: int, height: int) -> _Framebuffer:
 class GlRenderer:
     """The :class:`Renderer` backend: an :class:`~cosy_lite.render.gl.EglContext` (Mesa llvmpipe on
     CPU, NVIDIA EGL on a GPU) and a lean OpenGL pass of its own (see the module docstring for the
-    conventions); :meth:`render_depth_window` is the evaluator's windowed depth.
+    conventions).
 
     Args:
         meshes: obj_id -> trimesh.Trimesh in metres (texture or vertex colours used as they are).
@@ -530,60 +500,6 @@ class GlRenderer:
                     None if rgb is None else rgb[sl], depth[sl], MV[sl], self.shading == "headlight",
                 )
         return RenderOutput(rgb, depth, depth > 0)
-
-    def render_depth_window(
-        self, obj_id: int, TCO: Any, K: Any, resolution: Resolution, window: tuple[int, int, int, int],
-        znear: float | None = None, zfar: float | None = None,
-    ) -> np.ndarray:
-        """Depth [y1 - y0, x1 - x0] float32 (m, 0 = background) of ``obj_id`` alone at ``TCO`` [4,4]:
-        rows ``y0:y1`` and columns ``x0:x1`` of its full-image render (``K`` [3,3] the image's
-        intrinsics, ``resolution`` (H, W) the image's size), for ``window = (x0, y0, x1, y1)``.
-
-        Only the window is cleared, drawn (a scissor) and read back, so a small object in a large
-        image costs little; the projection is the full image's, so the pixels are exactly those of a
-        full-image render. ``znear``, ``zfar`` (m): clipping planes of this call (default: the
-        renderer's); planes tight around the object give the depth test its finest resolution.
-        Rasterised as the BOP toolkit's renderer (see :func:`_window_depth_draw`): two-sided; the
-        pixels of :meth:`render`, their depth up to the rounding of the float32 vertex transforms
-        (largest on grazing triangles). The object is drawn even if its origin is behind the camera
-        (unlike :meth:`render`). :meth:`render_depth_windows` draws many at once.
-        """
-        return self.render_depth_windows([DepthWindow(obj_id, TCO, window, znear, zfar)], K, resolution)[0]
-
-    def render_depth_windows(self, items: Sequence[DepthWindow], K: Any, resolution: Resolution) -> list[np.ndarray]:
-        """:meth:`render_depth_window` of every item, the same pixels, drawn in batches: each item
-        into its own framebuffer, a batch drawn before any of it is read back, so that llvmpipe's
-        rasterizer threads work on one item while this thread prepares the next."""
-        prepared = []
-        for item in items:
-            TCO = _as_numpy(item.TCO)
-            if TCO.shape != (4, 4):
-                raise ValueError(f"TCO must be [4,4], got shape {TCO.shape}")
-            ids, TCO, K_, (H, W) = check_render_inputs([item.obj_id], TCO[None], K, resolution)
-            x0, y0, x1, y1 = (int(v) for v in item.window)
-            depth = np.zeros((max(0, y1 - y0), max(0, x1 - x0)), dtype=np.float32)
-            if depth.size and (x0 < 0 or y0 < 0 or x1 > W or y1 > H):
-                raise ValueError(f"window {tuple(item.window)} (x0, y0, x1, y1) is not inside the {W}x{H} image")
-            znear = self.znear if item.znear is None else float(item.znear)
-            zfar = self.zfar if item.zfar is None else float(item.zfar)
-            if not 0 < znear < zfar:
-                raise ValueError(f"need 0 < znear < zfar, got znear={znear}, zfar={zfar}")
-            self.mesh(ids[0])  # an unknown id fails before any GL work
-            P = projection_matrices(K_, (H, W), znear, zfar, y_up=True)[0]
-            prepared.append((ids[0], P, TCO[0], (x0, y0, x1, y1), depth))
-        todo = [q for q in prepared if q[4].size]
-        if todo:
-            res = (int(resolution[0]), int(resolution[1]))
-            with self._gl_current() as gls:
-                _check_size(gls, res)
-                for start in range(0, len(todo), WINDOW_BATCH):
-                    batch = todo[start:start + WINDOW_BATCH]
-                    fbs = self._framebuffers(gls, res, len(batch))
-                    for fb, (obj_id, P, MV, window, _) in zip(fbs, batch):
-                        _window_depth_draw(gls, fb, self._gpu_mesh(gls, obj_id), P, MV, res, window)
-                    for fb, (_, _, _, window, depth) in zip(fbs, batch):
-                        _window_depth_read(fb, res, window, depth)
-        return [q[4] for q in prepared]
 
     def render_tensors(
         self, obj_ids: Sequence[int], TCO: Any, K: Any, resolution: Resolution,
@@ -735,48 +651,6 @@ def _render_pass(
         _read_into(gl.GL_COLOR_ATTACHMENT1, (0, 0, W, H), gl.GL_RED, gl.GL_FLOAT, depth[j])
         if rgb is not None:
             _read_into(gl.GL_COLOR_ATTACHMENT0, (0, 0, W, H), gl.GL_RGB, gl.GL_UNSIGNED_BYTE, rgb[j])
-
-
-def _window_depth_draw(
-    gls: _GlState, fb: _Framebuffer, mesh: _GpuMesh, P: np.ndarray, MV: np.ndarray, resolution: Resolution,
-    window: tuple[int, int, int, int],
-) -> None:
-    """Draw the depth of ``mesh`` inside ``window`` (x0, y0, x1, y1) of an (H, W) image into ``fb``.
-
-    Rasterised as the BOP toolkit's renderer (the evaluator's results are those of this pass):
-    window y = H - v (``P`` from :func:`~cosy_lite.render.gl.projection_matrices` with
-    ``y_up=True``), clip = P (MV p) and camera z = (MV p).z in the shader (``MV`` = TCO), two-sided.
-    Only the window is cleared and drawn (a scissor); :func:`_window_depth_read` reads it back.
-    """
-    from OpenGL import GL as gl
-
-    H, W = resolution
-    x0, y0, x1, y1 = window
-    gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fb.fbo)
-    gl.glDrawBuffers(2, [gl.GL_NONE, gl.GL_COLOR_ATTACHMENT1])
-    gl.glViewport(0, 0, W, H)
-    gl.glScissor(x0, H - y1, x1 - x0, y1 - y0)  # GL rows count from the bottom
-    gl.glClear(gl.GL_COLOR_BUFFER_BIT | gl.GL_DEPTH_BUFFER_BIT)
-    gl.glUseProgram(gls.programs["window_depth"])
-    gl.glDisable(gl.GL_CULL_FACE)
-    projection_loc, _, model_view_loc = gls.uniforms["window_depth"]
-    gl.glUniformMatrix4fv(projection_loc, 1, gl.GL_TRUE, np.ascontiguousarray(P, dtype=np.float32))
-    gl.glUniformMatrix4fv(model_view_loc, 1, gl.GL_TRUE, np.ascontiguousarray(MV, dtype=np.float32))
-    gl.glBindVertexArray(mesh.vao)
-    gl.glDrawElements(gl.GL_TRIANGLES, mesh.n_indices, gl.GL_UNSIGNED_INT, None)
-    gl.glBindVertexArray(0)
-
-
-def _window_depth_read(fb: _Framebuffer, resolution: Resolution, window: tuple[int, int, int, int],
-                       out: np.ndarray) -> None:
-    """The depth drawn by :func:`_window_depth_draw` into ``fb`` -> ``out`` [y1 - y0, x1 - x0], image rows."""
-    from OpenGL import GL as gl
-
-    H = resolution[0]
-    x0, y0, x1, y1 = window
-    gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, fb.fbo)
-    _read_into(gl.GL_COLOR_ATTACHMENT1, (x0, H - y1, x1, H - y0), gl.GL_RED, gl.GL_FLOAT, out)
-    out[:] = out[::-1].copy()  # bottom-up GL rows -> image rows
 
 
 def _read_into(buffer: int, window: tuple[int, int, int, int], fmt: int, gl_type: int, out: np.ndarray) -> None:

@@ -25,7 +25,7 @@ from torch.utils.data import Dataset
 
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG
-from cosy_lite.nets.appearance_scorer import AppearanceScorer, listwise_loss
+from cosy_lite.nets.appearance_scorer import AppearanceScorer, flip_loss, listwise_loss
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
 from cosy_lite.train.start_observations import Instances, StartObservations, cache_key, observe_all
@@ -39,6 +39,7 @@ class ScorerDataConfig:
     val_images: int = 40  # images of the split held out (never trained on) for validation
     n_templates: int = 2048  # template rotations per object trained against (inference: 2,048)
     positive_deg: float = 15.0  # templates this close to GT are the positives of the listwise loss
+    flip_weight: float = 0.0  # weight of flip_loss (the best hypothesis > FLIPPED_DEG off against the closest)
     template_shading: str = "headlight"  # as the refiner renders (the templates of inference)
     cache_dir: str = ""  # observations and template descriptors; "": $COSY_LITE_CACHE or ~/.cache/cosy_lite
     observe_workers: int = 0  # processes describing the instances; 0: the CPU cores / the training processes
@@ -194,8 +195,14 @@ class ScorerTask:
         x = augment_crops(crops.float() / 255.0, self.cfg.augmentation)
         scores = self._scores(model, x, obj_ids, iou, device)
         net = cast(AppearanceScorer, model.module if hasattr(model, "module") else model)  # the scorer, DDP-wrapped or not
-        loss = listwise_loss(scores, errors.to(device).float(), net.log_logit_scale.exp(), self.cfg.data.positive_deg)
-        return {"total": loss, "iou_weight": net.iou_weight.detach().clone()}
+        errors = errors.to(device).float()
+        scale = net.log_logit_scale.exp()
+        listwise = listwise_loss(scores, errors, scale, self.cfg.data.positive_deg)
+        out = {"total": listwise, "iou_weight": net.iou_weight.detach().clone()}
+        if self.cfg.data.flip_weight > 0:
+            flips = flip_loss(scores, errors, scale, FLIPPED_DEG)
+            out.update(total=listwise + self.cfg.data.flip_weight * flips, listwise=listwise.detach(), flip=flips.detach())
+        return out
 
     @torch.no_grad()
     def validate(self, model: torch.nn.Module, device: torch.device) -> dict[str, float]:

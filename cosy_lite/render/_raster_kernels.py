@@ -1,0 +1,162 @@
+"""The compiled loops of :mod:`cosy_lite.render.depth_raster` (numba, ``cache=True``: compiled once
+per install, ~3 s, then loaded). Imported only by that module's functions, on first use.
+
+Coverage as a GL rasteriser decides it (what the BOP toolkit's renderer runs on): vertex positions
+snapped to 1/256 px (:data:`SUBPIXELS`), so that the edge functions are exact (products of
+multiples of 1/256 under 2^20 are exact in float64), and a sample exactly on an edge belongs to
+the triangle whose top or left edge it is (one of the two triangles sharing it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+SUBPIXELS = 256.0  # GL's sub-pixel precision (8 bits: llvmpipe, and the GPUs of the toolkit's users)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def snap(x):
+    """Image coordinate -> the nearest multiple of 1 / SUBPIXELS."""
+    return np.floor(x * SUBPIXELS + 0.5) / SUBPIXELS
+
+
+@njit(cache=True, nogil=True, inline="always")
+def edge_coefficients(ax, ay, bx, by):
+    """(A, B, C) of the edge function ``A x + B y + C`` of the edge a -> b (> 0 on its left in
+    image coordinates), computed from the endpoints in one order whichever way the edge runs: the
+    two triangles of a shared edge get exactly opposite values, so no sample on it falls between them."""
+    if ax > bx or (ax == bx and ay > by):
+        A, B = by - ay, ax - bx
+        return -A, -B, A * bx + B * by
+    A, B = ay - by, bx - ax
+    return A, B, -(A * ax + B * ay)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, sub, svb, suc, svc):
+    """z-buffer ``out`` (window at ``x0, y0``) with the image triangle (u, v) a, b, c whose corners
+    have camera depth 1 / iz (> 0). Coverage from the corners snapped (su, sv: as GL), depth from
+    the exact ones: ``1 / z`` is a plane over the image."""
+    h, w = out.shape
+    # pixel columns / rows whose sample (c + 0.5, r + 0.5) may be inside, clipped to the window
+    c0 = max(int(np.ceil(min(sua, sub, suc) - 0.5)), x0)
+    c1 = min(int(np.floor(max(sua, sub, suc) - 0.5)), x0 + w - 1)
+    if c0 > c1:
+        return
+    r0 = max(int(np.ceil(min(sva, svb, svc) - 0.5)), y0)
+    r1 = min(int(np.floor(max(sva, svb, svc) - 0.5)), y0 + h - 1)
+    if r0 > r1:
+        return
+    Aa, Ba, Ca = edge_coefficients(sub, svb, suc, svc)
+    Ab, Bb, Cb = edge_coefficients(suc, svc, sua, sva)
+    Ac, Bc, Cc = edge_coefficients(sua, sva, sub, svb)
+    area = Aa * sua + Ba * sva + Ca
+    if area == 0.0 or not np.isfinite(area):
+        return
+    if area < 0:  # two-sided: either winding
+        Aa, Ba, Ca, Ab, Bb, Cb, Ac, Bc, Cc = -Aa, -Ba, -Ca, -Ab, -Bb, -Cb, -Ac, -Bc, -Cc
+    # A sample on an edge (E = 0) is inside if the triangle is right of it (a left edge: A > 0) or
+    # below a horizontal one (a top edge, image rows down: B > 0).
+    oa = not (Aa > 0 or (Aa == 0 and Ba > 0))  # edge opposite a open (E = 0 outside)
+    ob = not (Ab > 0 or (Ab == 0 and Bb > 0))
+    oc = not (Ac > 0 or (Ac == 0 and Bc > 0))
+    # 1 / z = iza + P (u - ua) + Q (v - va), from the exact corners
+    det = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
+    P = Q = 0.0
+    if det != 0.0:
+        P = ((izb - iza) * (vc - va) - (izc - iza) * (vb - va)) / det
+        Q = ((izc - iza) * (ub - ua) - (izb - iza) * (uc - ua)) / det
+    for r in range(r0, r1 + 1):
+        py = r + 0.5
+        ra, rb, rc = Ba * py + Ca, Bb * py + Cb, Bc * py + Cc
+        rz = iza + Q * (py - va)
+        for col in range(c0, c1 + 1):
+            px = col + 0.5
+            ea = Aa * px + ra
+            eb = Ab * px + rb
+            ec = Ac * px + rc
+            if ea < 0.0 or eb < 0.0 or ec < 0.0:
+                continue
+            if (ea == 0.0 and oa) or (eb == 0.0 and ob) or (ec == 0.0 and oc):
+                continue
+            iz = rz + P * (px - ua)
+            z = 1.0 / iz if iz > 0 else out[r - y0, col - x0]  # (a sliver's plane may overshoot)
+            if z < out[r - y0, col - x0]:
+                out[r - y0, col - x0] = z
+
+
+@njit(cache=True, nogil=True)
+def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear):
+    """z-buffer ``out`` (window at ``x0, y0``, +inf where empty) with the mesh at ``R``, ``t``,
+    clipped by the plane z = znear."""
+    n = vertices.shape[0]
+    cam = np.empty((n, 3))
+    u = np.empty(n)
+    v = np.empty(n)
+    su = np.empty(n)
+    sv = np.empty(n)
+    iz = np.empty(n)
+    for i in range(n):
+        for k in range(3):
+            cam[i, k] = R[k, 0] * vertices[i, 0] + R[k, 1] * vertices[i, 1] + R[k, 2] * vertices[i, 2] + t[k]
+        if cam[i, 2] >= znear:
+            iz[i] = 1.0 / cam[i, 2]
+            u[i] = fx * cam[i, 0] * iz[i] + cx
+            v[i] = fy * cam[i, 1] * iz[i] + cy
+            su[i], sv[i] = snap(u[i]), snap(v[i])
+    poly = np.empty((4, 3))
+    for f in range(faces.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        front = (cam[a, 2] >= znear) + (cam[b, 2] >= znear) + (cam[c, 2] >= znear)
+        if front == 3:
+            draw_triangle(out, x0, y0, u[a], v[a], iz[a], u[b], v[b], iz[b], u[c], v[c], iz[c],
+                          su[a], sv[a], su[b], sv[b], su[c], sv[c])
+            continue
+        if front == 0:
+            continue
+        # clip the triangle by z = znear (Sutherland-Hodgman, one plane): 3 or 4 vertices
+        m = 0
+        corners = (a, b, c)
+        for i in range(3):
+            s, e = corners[i], corners[(i + 1) % 3]
+            if cam[s, 2] >= znear:
+                poly[m] = cam[s]
+                m += 1
+            if (cam[s, 2] >= znear) != (cam[e, 2] >= znear):
+                p, q = (s, e) if cam[s, 2] >= znear else (e, s)  # from the front end: the same point both ways
+                k = (znear - cam[p, 2]) / (cam[q, 2] - cam[p, 2])
+                poly[m] = cam[p] + k * (cam[q] - cam[p])
+                poly[m, 2] = znear
+                m += 1
+        for i in range(1, m - 1):
+            j = (0, i, i + 1)
+            pu = np.empty(3)
+            pv = np.empty(3)
+            pz = np.empty(3)
+            for k in range(3):
+                pz[k] = 1.0 / poly[j[k], 2]
+                pu[k] = fx * poly[j[k], 0] * pz[k] + cx
+                pv[k] = fy * poly[j[k], 1] * pz[k] + cy
+            draw_triangle(out, x0, y0, pu[0], pv[0], pz[0], pu[1], pv[1], pz[1], pu[2], pv[2], pz[2],
+                          snap(pu[0]), snap(pv[0]), snap(pu[1]), snap(pv[1]), snap(pu[2]), snap(pv[2]))
+
+
+@njit(cache=True, nogil=True)
+def finish(out, x0, y0, fx, fy, cx, cy, distance):
+    """The z-buffer ``out`` (+inf where empty) in place -> depth rounded to float32 (0 where empty);
+    with ``distance``, then the distance from the camera centre as the toolkit's
+    ``depth_im_to_dist_im_fast`` computes it (float64 of the float32 depth, at pixel indices)."""
+    h, w = out.shape
+    for r in range(h):
+        Y = (r + y0 - cy) / fy
+        for col in range(w):
+            z = out[r, col]
+            if z == np.inf:
+                out[r, col] = 0.0
+                continue
+            d = np.float64(np.float32(z))
+            if distance:
+                X = (col + x0 - cx) / fx
+                d = np.sqrt((X * d) ** 2 + (Y * d) ** 2 + d ** 2)
+            out[r, col] = d

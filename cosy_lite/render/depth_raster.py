@@ -1,0 +1,62 @@
+"""Depth of one triangle mesh inside an image window, rasterised on the CPU (numba).
+
+The evaluator's renderer (VSD needs the depth of one object at a time, inside the window the object
+covers): no GL context, no draw call, no read-back; one compiled loop over the triangles. Its
+conventions are those of the BOP toolkit's renderer: OpenCV camera, the pixel of row ``r``, column
+``c`` sampled at ``(u, v) = (c + 0.5, r + 0.5)``; depth = camera Z of the nearest surface,
+interpolated perspective-correctly (``1 / z`` is linear in the image), 0 where nothing is drawn;
+faces two-sided; triangles clipped by the plane ``z = znear``. A sample on a triangle's edge
+belongs to it (both triangles of a shared edge draw it; the nearer depth wins, as everywhere).
+
+The compiled loop (:mod:`cosy_lite.render._raster_kernels`, imported on first use) is cached next
+to it (``numba``'s ``cache=True``): the first call in a fresh install compiles (~3 s), later
+processes load it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, TCO: np.ndarray, K: np.ndarray,
+                    window: tuple[int, int, int, int], znear: float = 1e-3, distance: bool = False) -> np.ndarray:
+    """Depth [y1 - y0, x1 - x0] float32 (m, 0 = background) of the mesh at ``TCO`` [4,4] in the
+    image rows ``y0:y1``, columns ``x0:x1`` (``window = (x0, y0, x1, y1)``) of the camera ``K``
+    [3,3] (OpenCV, no skew): those pixels of a full-image render, exactly.
+
+    Args:
+        vertices: [N,3] float64 (m); faces: [F,3] int32 indices into them (see :func:`mesh_arrays`).
+        znear: clipping plane (m, > 0); the part of the mesh nearer than it is not drawn.
+        distance: return instead the float64 distance from the camera centre of each pixel's
+            float32 depth, as :func:`cosy_lite.eval.image_errors.distance_map` (VSD's input), in the
+            same pass.
+    """
+    from cosy_lite.render._raster_kernels import draw_mesh, finish
+
+    x0, y0, x1, y1 = (int(v) for v in window)
+    if x1 <= x0 or y1 <= y0:
+        return np.zeros((max(0, y1 - y0), max(0, x1 - x0)), np.float64 if distance else np.float32)
+    if not znear > 0:
+        raise ValueError(f"znear must be > 0, got {znear}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or K[0, 1] != 0:
+        raise ValueError(f"K must be a [3,3] camera matrix without skew, got {K.tolist()}")
+    TCO = np.asarray(TCO, dtype=np.float64)
+    out = np.full((y1 - y0, x1 - x0), np.inf)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    draw_mesh(out, vertices, faces, np.ascontiguousarray(TCO[:3, :3]), np.ascontiguousarray(TCO[:3, 3]),
+              fx, fy, cx, cy, x0, y0, float(znear))
+    finish(out, x0, y0, fx, fy, cx, cy, distance)
+    return out if distance else out.astype(np.float32)
+
+
+def mesh_arrays(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices [N,3] float64 C-contiguous, faces [F,3] int32) as :func:`rasterize_depth` takes
+    them; ValueError if they are not a triangle mesh."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or f.size == 0 or f.size % 3 or f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"expected vertices [N,3] and faces [F,3] indexing them, got {v.shape} and {f.shape}")
+    if not np.isfinite(v).all():
+        raise ValueError("vertices are not all finite")
+    return v, np.ascontiguousarray(f.reshape(-1, 3), dtype=np.int32)
