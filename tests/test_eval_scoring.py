@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -175,10 +177,15 @@ def test_the_auc_is_computed_only_when_asked_and_changes_no_bop19_score(root: Pa
     assert row.split()[-2:] == ["-", "-"]
 
 
-def test_worker_processes_give_the_same_errors_and_scores(root: Path):
-    """evaluate(workers=2): the images split between two spawned processes; every error array and
-    score equals the one-process run (estimates off by 1-3 cm and 5-20 deg, with the AUC)."""
+@pytest.mark.parametrize("start", ["spawn", "fork"])
+def test_worker_processes_give_the_same_errors_and_scores(root: Path, monkeypatch, start: str):
+    """evaluate(workers=2): the images split between two processes, spawned or forked (what
+    ``cosy-lite eval`` does, free of torch); every error array and score equals the one-process run
+    (estimates off by 1-3 cm and 5-20 deg, with the AUC)."""
+    from cosy_lite.eval import evaluator
     from cosy_lite.geometry.transforms import rotation_about_axis
+
+    monkeypatch.setattr(evaluator, "fork_is_safe", lambda: start == "fork")
 
     ests = _gt_estimates()
     for k, e in enumerate(ests):
@@ -452,3 +459,11 @@ def test_auto_workers_follow_cores_and_split_size(monkeypatch):
     assert [evaluator.auto_workers(n) for n in (9, 35, 100)] == [1, 3, 4]
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
     assert evaluator.auto_workers(1000) == 1
+
+
+def test_workers_are_forked_only_from_a_process_without_torch():
+    code = ("import cosy_lite.eval.evaluator as e; a = e.fork_is_safe(); import torch; "
+            "print(a, e.fork_is_safe())")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0 and r.stdout.split() == ["True", "False"], r.stdout + r.stderr

@@ -50,6 +50,11 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, TCO: np.ndarray, K:
     return out if distance else out.astype(np.float32)
 
 
+def warm_up() -> None:
+    """Load (or compile) the rasteriser now, e.g. before forking processes that will use it."""
+    rasterize_depth(np.eye(3), np.array([[0, 1, 2]], np.int32), np.eye(4), np.eye(3), (0, 0, 1, 1))
+
+
 def mesh_arrays(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(vertices [N,3] float64 C-contiguous, faces [F,3] int32) as :func:`rasterize_depth` takes
     them; ValueError if they are not a triangle mesh."""
