@@ -94,15 +94,13 @@ def format_table(result) -> str:
 
 def plot_curves(result, path: Path) -> None:
     """Recall vs threshold: VSD (one curve per tau, vs theta), MSSD (vs fraction of diameter), MSPD (vs px)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no GUI state, less to import
 
     from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_TAUS, VSD_THETAS
 
     s = result.scores
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig = Figure(figsize=(15, 4.2))
+    axes = fig.subplots(1, 3)
     for i, tau in enumerate(VSD_TAUS):
         axes[0].plot(VSD_THETAS, s.recall_vsd[i], marker=".", label=f"tau={tau:.2f}d")
     axes[0].set(title=f"VSD (AR {s.ar_vsd:.3f})", xlabel="theta", ylabel="recall")
@@ -118,7 +116,6 @@ def plot_curves(result, path: Path) -> None:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def _argument_problem(args: argparse.Namespace) -> str | None:
