@@ -61,16 +61,11 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
     oa = not (Aa > 0 or (Aa == 0 and Ba > 0))  # edge opposite a open (E = 0 outside)
     ob = not (Ab > 0 or (Ab == 0 and Bb > 0))
     oc = not (Ac > 0 or (Ac == 0 and Bc > 0))
-    # 1 / z = iza + P (u - ua) + Q (v - va), from the exact corners
-    det = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
-    P = Q = 0.0
-    if det != 0.0:
-        P = ((izb - iza) * (vc - va) - (izc - iza) * (vb - va)) / det
-        Q = ((izc - iza) * (ub - ua) - (izb - iza) * (uc - ua)) / det
+    P = Q = 0.0  # 1 / z = iza + P (u - ua) + Q (v - va), from the exact corners (set at the first sample inside)
+    plane = False
     for r in range(r0, r1 + 1):
         py = r + 0.5
         ra, rb, rc = Ba * py + Ca, Bb * py + Cb, Bc * py + Cc
-        rz = iza + Q * (py - va)
         for col in range(c0, c1 + 1):
             px = col + 0.5
             ea = Aa * px + ra
@@ -80,7 +75,14 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
                 continue
             if (ea == 0.0 and oa) or (eb == 0.0 and ob) or (ec == 0.0 and oc):
                 continue
-            iz = rz + P * (px - ua)
+            if not plane:
+                plane = True
+                det = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
+                if det != 0.0:
+                    inv = 1.0 / det
+                    P = ((izb - iza) * (vc - va) - (izc - iza) * (vb - va)) * inv
+                    Q = ((izc - iza) * (ub - ua) - (izb - iza) * (uc - ua)) * inv
+            iz = iza + P * (px - ua) + Q * (py - va)
             z = 1.0 / iz if iz > 0 else out[r - y0, col - x0]  # (a sliver's plane may overshoot)
             if z < out[r - y0, col - x0]:
                 out[r - y0, col - x0] = z
