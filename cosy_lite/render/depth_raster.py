@@ -5,8 +5,11 @@ covers): no GL context, no draw call, no read-back; one compiled loop over the t
 conventions are those of the BOP toolkit's renderer: OpenCV camera, the pixel of row ``r``, column
 ``c`` sampled at ``(u, v) = (c + 0.5, r + 0.5)``; depth = camera Z of the nearest surface,
 interpolated perspective-correctly (``1 / z`` is linear in the image), 0 where nothing is drawn;
-faces two-sided; triangles clipped by the plane ``z = znear``. A sample on a triangle's edge
-belongs to it (both triangles of a shared edge draw it; the nearer depth wins, as everywhere).
+faces two-sided; triangles clipped by the plane ``z = znear``. Which samples a triangle covers is
+decided as a GL rasteriser decides it (the toolkit's renders come from one): corners snapped to
+1/256 px, a sample on an edge taken by the triangle whose top or left edge it is; the depth comes
+from the exact corners. On the demo's results files the AR equals that of the GL pass this
+replaced, and the toolkit's.
 
 The compiled loop (:mod:`cosy_lite.render._raster_kernels`, imported on first use) is cached next
 to it (``numba``'s ``cache=True``): the first call in a fresh install compiles (~3 s), later
