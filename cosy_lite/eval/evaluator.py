@@ -227,6 +227,7 @@ class _ImageEvaluation:
             pool.shutdown(cancel_futures=True)
         return out, im_width
 
+
 MAX_AUTO_WORKERS = 4  # workers=None: one process per available core, at most this many ...
 MIN_IMAGES_PER_WORKER = 10  # ... and no more than one per this many images (a spawned worker costs ~2 s to start)
 
