@@ -123,12 +123,3 @@ class WindowDepthRenderer:
                     distance: bool = False) -> list[np.ndarray]:
         """:meth:`render` of every ``(obj_id, TCO, window)``."""
         return [self.render(obj_id, TCO, K, window, distance) for obj_id, TCO, window in items]
-
-    def close(self) -> None:
-        """Nothing to free (kept for the context-manager use of the evaluator)."""
-
-    def __enter__(self) -> WindowDepthRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

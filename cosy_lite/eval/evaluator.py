@@ -256,7 +256,7 @@ def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int, progress: 
                      ev: _ImageEvaluation | None = None) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
     """:meth:`_ImageEvaluation.run` over ``keys`` in ``workers`` processes, in chunks of
     consecutive images. With ``ev`` (this process's evaluation, meshes and object tables built), the
-    workers are forked from this process and start with all of it (~1.5 s less each); else they
+    workers are forked from this process and start with all of it; else they
     are spawned and build their own from ``args``."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
