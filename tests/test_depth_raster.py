@@ -128,3 +128,49 @@ def test_distances_are_those_of_the_depth_bit_for_bit():
     dist = rasterize_depth(*mesh, T, K, window, distance=True)
     assert dist.dtype == np.float64 and np.count_nonzero(dist) > 500
     np.testing.assert_array_equal(dist, distance_map(depth, K, Window(*window)))
+
+
+def test_closed_meshes_skip_their_back_faces_and_draw_the_same_pixels():
+    from cosy_lite.render.depth_raster import back_face_sign
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+    box = trimesh.creation.box(extents=[0.05, 0.03, 0.02]).subdivide()
+    v, f = mesh_arrays(sphere.vertices, sphere.faces)
+    assert back_face_sign(v, f) == 1.0  # outward faces
+    assert back_face_sign(v, f[:, ::-1]) == -1.0  # the same mesh inside out
+    assert back_face_sign(v, f[1:]) == 0.0  # a hole: drawn two-sided
+    # seams: vertices repeated at the same position (as textured models have) still close the mesh
+    split = np.concatenate([v, v]), np.where(np.arange(len(f))[:, None] % 2 == 0, f, f + len(v)).astype(np.int32)
+    assert back_face_sign(*split) == 1.0
+    # two parts wound opposite ways (an inside-out part): not culled
+    two = np.concatenate([v, v + [0.1, 0, 0]]), np.concatenate([f, f[:, ::-1] + len(v)]).astype(np.int32)
+    assert back_face_sign(*two) == 0.0
+    rng = np.random.default_rng(5)
+    for mesh in (sphere, box):
+        v, f = mesh_arrays(mesh.vertices, mesh.faces)
+        sign = back_face_sign(v, f)
+        for _ in range(4):
+            q = rng.normal(size=4)
+            T = _pose([rng.uniform(-0.1, 0.1), rng.uniform(-0.08, 0.08), rng.uniform(0.3, 0.7)],
+                      trimesh.transformations.quaternion_matrix(q / np.linalg.norm(q))[:3, :3])
+            both = rasterize_depth(v, f, T, K, (0, 0, W, H))
+            culled = rasterize_depth(v, f, T, K, (0, 0, W, H), cull=sign)
+            assert np.count_nonzero(both) > 500
+            np.testing.assert_array_equal(culled > 0, both > 0)
+            np.testing.assert_allclose(culled, both, atol=1e-6)
+            # the other sign keeps the back faces only: the far side of the object, same outline
+            far = rasterize_depth(v, f, T, K, (0, 0, W, H), cull=-sign)
+            np.testing.assert_array_equal(far > 0, both > 0)
+            assert np.median(far[both > 0] - both[both > 0]) > 0.005
+
+
+def test_culling_stops_where_the_near_plane_cuts_the_mesh():
+    from cosy_lite.render.depth_raster import back_face_sign
+
+    box = trimesh.creation.box(extents=[0.2, 0.2, 0.2]).subdivide()
+    v, f = mesh_arrays(box.vertices, box.faces)
+    T = _pose([0.0, 0.0, 0.12])  # the box spans z = 0.02 .. 0.22: the plane z = 0.05 cuts it
+    both = rasterize_depth(v, f, T, K, (0, 0, W, H), znear=0.05)
+    culled = rasterize_depth(v, f, T, K, (0, 0, W, H), znear=0.05, cull=back_face_sign(v, f))
+    assert np.count_nonzero(both) > 1000 and both[both > 0].min() > 0.05  # the inside: walls behind the plane
+    np.testing.assert_array_equal(culled, both)

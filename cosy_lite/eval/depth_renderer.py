@@ -83,16 +83,18 @@ class WindowDepthRenderer:
     """
 
     def __init__(self, meshes: dict[int, tuple[np.ndarray, np.ndarray]], width: int, height: int):
-        from cosy_lite.render.depth_raster import mesh_arrays
+        from cosy_lite.render.depth_raster import back_face_sign, mesh_arrays
 
         self.width, self.height = int(width), int(height)
         self._meshes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._cull: dict[int, float] = {}  # obj_id -> back_face_sign (0: drawn two-sided)
         self._corners: dict[int, np.ndarray] = {}  # obj_id -> [8,3] bounding box corners (m)
         for obj_id, (vertices, faces) in meshes.items():
             try:
                 v, f = self._meshes[int(obj_id)] = mesh_arrays(vertices, faces)
             except ValueError as e:
                 raise ValueError(f"obj_id {obj_id}: {e}") from None
+            self._cull[int(obj_id)] = back_face_sign(v, f)
             lo, hi = v.min(axis=0), v.max(axis=0)
             self._corners[int(obj_id)] = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
 
@@ -117,7 +119,7 @@ class WindowDepthRenderer:
             return np.zeros(window.shape, np.float64 if distance else np.float32)
         near = max(NEAR_MIN_M, 0.5 * float(z.min()))  # as the toolkit: the plane only cuts what touches the camera
         return rasterize_depth(*self._meshes[obj_id], TCO, K, (window.x0, window.y0, window.x1, window.y1), near,
-                               distance)
+                               distance, self._cull[obj_id])
 
     def render_many(self, items: list[tuple[int, np.ndarray, Window]], K: np.ndarray,
                     distance: bool = False) -> list[np.ndarray]:

@@ -5,6 +5,9 @@ Coverage as a GL rasteriser decides it (what the BOP toolkit's renderer runs on)
 snapped to 1/256 px (:data:`SUBPIXELS`), so that the edge functions are exact (products of
 multiples of 1/256 under 2^20 are exact in float64), and a sample exactly on an edge belongs to
 the triangle whose top or left edge it is (one of the two triangles sharing it).
+
+The z-buffer holds ``1 / z`` (0 = empty; the largest wins): ``1 / max(1 / z)`` is ``min(z)`` bit
+for bit (rounding is monotonic), without a division per sample.
 """
 
 from __future__ import annotations
@@ -13,6 +16,10 @@ import numpy as np
 from numba import njit
 
 SUBPIXELS = 256.0  # GL's sub-pixel precision (8 bits: llvmpipe, and the GPUs of the toolkit's users)
+# A back face is skipped only above this doubled area (px^2): a closed mesh's back faces cover no
+# sample that its front faces do not, but an edge-on sliver's depth plane is ill-conditioned, and the
+# nearer of two such planes decides the depth on a few silhouette pixels as the two-sided draw does.
+CULL_MIN_AREA2 = 0.5
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -34,10 +41,11 @@ def edge_coefficients(ax, ay, bx, by):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, sub, svb, suc, svc):
-    """z-buffer ``out`` (window at ``x0, y0``) with the image triangle (u, v) a, b, c whose corners
+def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, sub, svb, suc, svc, cull):
+    """1/z-buffer ``out`` (window at ``x0, y0``) with the image triangle (u, v) a, b, c whose corners
     have camera depth 1 / iz (> 0). Coverage from the corners snapped (su, sv: as GL), depth from
-    the exact ones: ``1 / z`` is a plane over the image."""
+    the exact ones: ``1 / z`` is a plane over the image. ``cull`` (+1 / -1): skip the triangle if
+    its snapped signed area has that sign (and is above :data:`CULL_MIN_AREA2`); 0: two-sided."""
     h, w = out.shape
     # pixel columns / rows whose sample (c + 0.5, r + 0.5) may be inside, clipped to the window
     c0 = max(int(np.ceil(min(sua, sub, suc) - 0.5)), x0)
@@ -49,11 +57,11 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
     if r0 > r1:
         return
     Aa, Ba, Ca = edge_coefficients(sub, svb, suc, svc)
+    area = Aa * sua + Ba * sva + Ca
+    if area == 0.0 or not np.isfinite(area) or cull * area > CULL_MIN_AREA2:
+        return
     Ab, Bb, Cb = edge_coefficients(suc, svc, sua, sva)
     Ac, Bc, Cc = edge_coefficients(sua, sva, sub, svb)
-    area = Aa * sua + Ba * sva + Ca
-    if area == 0.0 or not np.isfinite(area):
-        return
     if area < 0:  # two-sided: either winding
         Aa, Ba, Ca, Ab, Bb, Cb, Ac, Bc, Cc = -Aa, -Ba, -Ca, -Ab, -Bb, -Cb, -Ac, -Bc, -Cc
     # A sample on an edge (E = 0) is inside if the triangle is right of it (a left edge: A > 0) or
@@ -82,16 +90,17 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
                     inv = 1.0 / det
                     P = ((izb - iza) * (vc - va) - (izc - iza) * (vb - va)) * inv
                     Q = ((izc - iza) * (ub - ua) - (izb - iza) * (uc - ua)) * inv
-            iz = iza + P * (px - ua) + Q * (py - va)
-            z = 1.0 / iz if iz > 0 else out[r - y0, col - x0]  # (a sliver's plane may overshoot)
-            if z < out[r - y0, col - x0]:
-                out[r - y0, col - x0] = z
+            iz = iza + P * (px - ua) + Q * (py - va)  # (<= 0 on a sliver whose plane overshoots: not drawn)
+            if iz > out[r - y0, col - x0]:
+                out[r - y0, col - x0] = iz
 
 
 @njit(cache=True, nogil=True)
-def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear):
-    """z-buffer ``out`` (window at ``x0, y0``, +inf where empty) with the mesh at ``R``, ``t``,
-    clipped by the plane z = znear."""
+def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear, cull):
+    """1/z-buffer ``out`` (window at ``x0, y0``, 0 where empty) with the mesh at ``R``, ``t``,
+    clipped by the plane z = znear; ``cull``: the sign of the back faces' snapped area when the mesh
+    is closed (:func:`cosy_lite.render.depth_raster.back_face_sign`), 0 to draw both sides (also
+    done whenever the plane cuts the mesh: the camera may then see its inside)."""
     n = vertices.shape[0]
     cam = np.empty((n, 3))
     u = np.empty(n)
@@ -107,13 +116,15 @@ def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear):
             u[i] = fx * cam[i, 0] * iz[i] + cx
             v[i] = fy * cam[i, 1] * iz[i] + cy
             su[i], sv[i] = snap(u[i]), snap(v[i])
+        else:
+            cull = 0.0
     poly = np.empty((4, 3))
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         front = (cam[a, 2] >= znear) + (cam[b, 2] >= znear) + (cam[c, 2] >= znear)
         if front == 3:
             draw_triangle(out, x0, y0, u[a], v[a], iz[a], u[b], v[b], iz[b], u[c], v[c], iz[c],
-                          su[a], sv[a], su[b], sv[b], su[c], sv[c])
+                          su[a], sv[a], su[b], sv[b], su[c], sv[c], cull)
             continue
         if front == 0:
             continue
@@ -141,24 +152,48 @@ def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear):
                 pu[k] = fx * poly[j[k], 0] * pz[k] + cx
                 pv[k] = fy * poly[j[k], 1] * pz[k] + cy
             draw_triangle(out, x0, y0, pu[0], pv[0], pz[0], pu[1], pv[1], pz[1], pu[2], pv[2], pz[2],
-                          snap(pu[0]), snap(pv[0]), snap(pu[1]), snap(pv[1]), snap(pu[2]), snap(pv[2]))
+                          snap(pu[0]), snap(pv[0]), snap(pu[1]), snap(pv[1]), snap(pu[2]), snap(pv[2]), 0.0)
 
 
 @njit(cache=True, nogil=True)
 def finish(out, x0, y0, fx, fy, cx, cy, distance):
-    """The z-buffer ``out`` (+inf where empty) in place -> depth rounded to float32 (0 where empty);
+    """The 1/z-buffer ``out`` (0 where empty) in place -> depth rounded to float32 (0 where empty);
     with ``distance``, then the distance from the camera centre as the toolkit's
     ``depth_im_to_dist_im_fast`` computes it (float64 of the float32 depth, at pixel indices)."""
     h, w = out.shape
     for r in range(h):
         Y = (r + y0 - cy) / fy
         for col in range(w):
-            z = out[r, col]
-            if z == np.inf:
-                out[r, col] = 0.0
+            iz = out[r, col]
+            if iz == 0.0:
                 continue
-            d = np.float64(np.float32(z))
+            d = np.float64(np.float32(1.0 / iz))
             if distance:
                 X = (col + x0 - cx) / fx
                 d = np.sqrt((X * d) ** 2 + (Y * d) ** 2 + d ** 2)
             out[r, col] = d
+
+
+@njit(cache=True, nogil=True)
+def component_labels(faces, n):
+    """Per vertex the smallest vertex index of its connected component (edges of ``faces``), [n]."""
+    parent = np.arange(n)
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            a, b = faces[f, k], faces[f, (k + 1) % 3]
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            while parent[b] != b:
+                parent[b] = parent[parent[b]]
+                b = parent[b]
+            if a < b:
+                parent[b] = a
+            elif b < a:
+                parent[a] = b
+    for i in range(n):
+        r = i
+        while parent[r] != r:
+            r = parent[r]
+        parent[i] = r
+    return parent
