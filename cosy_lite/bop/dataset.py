@@ -95,6 +95,10 @@ class BopDataset:
         """trimesh.Trimesh in metres (``eval=True``: from ``models_eval/``)."""
         return io.load_model(self.model_path(obj_id, eval))
 
+    def load_model_geometry(self, obj_id: int, eval: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices [N,3] m, faces [F,3]) of the model (``eval=True``: from ``models_eval/``), without trimesh."""
+        return io.load_model_geometry(self.model_path(obj_id, eval))
+
     def _check_obj_id(self, obj_id: int) -> None:
         if obj_id not in self.models_info:
             raise BopFormatError(self.models_dir / "models_info.json", str(obj_id),

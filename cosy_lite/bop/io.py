@@ -305,27 +305,62 @@ def faces_problem(faces: np.ndarray, n_vertices: int) -> str | None:
 
 def load_model(path: str | Path) -> trimesh.Trimesh:
     """Load a BOP model (PLY in mm, optional texture) as a ``trimesh.Trimesh`` in metres."""
-    import trimesh
+    path = Path(path)
+    mesh = _trimesh_model(path)
+    _check_model(path, np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    mesh.apply_scale(MM)
+    return mesh
+
+
+def load_model_geometry(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The geometry of a BOP model: (vertices [N,3] float64 in metres, faces [F,3] int64), the
+    arrays of :func:`load_model`, with its checks."""
+    path = Path(path)
+    vertices, faces = read_model_arrays(path)
+    _check_model(path, vertices, faces)
+    return vertices * MM, faces
+
+
+def read_model_arrays(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices [N,3] float64 in the file's units, faces [F,3] int64) of a PLY model, unchecked;
+    read without trimesh where the file allows (:func:`cosy_lite.bop.ply.read_triangles`: binary
+    triangle meshes, as BOP's, in ~1 ms), else by trimesh."""
+    from cosy_lite.bop.ply import read_triangles
 
     path = Path(path)
     if not path.is_file():
         raise BopFormatError(path, "", "model file not found")
+    arrays = read_triangles(path)
+    if arrays is None:
+        mesh = _trimesh_model(path)
+        faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
+        arrays = np.asarray(mesh.vertices, dtype=np.float64), faces
+    return arrays
+
+
+def _trimesh_model(path: Path) -> trimesh.Trimesh:
+    import trimesh
+
+    if not path.is_file():
+        raise BopFormatError(path, "", "model file not found")
     try:
         # force="mesh" returns a Trimesh (a scene's geometries concatenated); trimesh types it as Geometry
-        mesh = cast(trimesh.Trimesh, trimesh.load(path, force="mesh", process=False))
+        return cast(trimesh.Trimesh, trimesh.load(path, force="mesh", process=False))
     except Exception as e:  # trimesh raises many types on bad files
         raise BopFormatError(path, "", f"cannot read mesh ({type(e).__name__}: {e})") from None
-    if len(mesh.vertices) == 0:
+
+
+def _check_model(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Raise BopFormatError if the model's vertices (mm) and faces are not a plausible BOP mesh."""
+    if len(vertices) == 0:
         raise BopFormatError(path, "vertex", NO_MESH)
-    if not np.all(np.isfinite(mesh.vertices)):
+    if not np.all(np.isfinite(vertices)):
         raise BopFormatError(path, "vertex", "vertices contain NaN or inf")
-    if (msg := faces_problem(np.asarray(mesh.faces), len(mesh.vertices))) is not None:
+    if (msg := faces_problem(faces, len(vertices))) is not None:
         raise BopFormatError(path, "face", msg)
-    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    extent = float(np.ptp(vertices, axis=0).max())
     if extent < MIN_PLAUSIBLE_DIAMETER_MM:
         raise BopFormatError(path, "vertex", f"model extent {extent:.4g} is implausibly small for mm (model in metres?)")
-    mesh.apply_scale(MM)
-    return mesh
 
 
 # ----------------------------------------------------------------------------- scene files

@@ -13,7 +13,7 @@ import re
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, cast
+from typing import Any, Callable, Literal
 
 import numpy as np
 
@@ -161,15 +161,10 @@ def _raw_diameters(info_path: Path) -> dict[int, float | None] | None:
 
 
 def _check_model_file(ply: Path, info_path: Path, obj_id: int, diameter_mm: float | None, out: _Collector) -> None:
-    import trimesh
-
     try:
-        # force="mesh" returns a Trimesh; trimesh types it as Geometry
-        mesh = cast(trimesh.Trimesh, trimesh.load(ply, force="mesh", process=False))
-        v = np.asarray(mesh.vertices, dtype=np.float64)
-        faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
-    except Exception as e:  # trimesh raises many types on bad files
-        out.error(ply, "", f"cannot read mesh ({type(e).__name__}: {e})")
+        v, faces = io.read_model_arrays(ply)
+    except BopFormatError as e:
+        out.error(ply, e.field, e.problem)
         return
     if len(v) == 0:
         out.error(ply, "vertex", io.NO_MESH)

@@ -152,8 +152,9 @@ class _ImageEvaluation:
         self.renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
 
     @cached_property
-    def meshes(self) -> dict:
-        return {o: self.ds.load_model(o, eval=True) for o in self.target_objs}
+    def meshes(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """obj_id -> (vertices [N,3] m, faces [F,3]) of its ``models_eval`` mesh."""
+        return {o: self.ds.load_model_geometry(o, eval=True) for o in self.target_objs}
 
     @cached_property
     def objs(self) -> dict[int, ObjectErrors]:
@@ -163,7 +164,7 @@ class _ImageEvaluation:
 
         step, zero_angle = self._symmetries
         info = self.ds.models_info
-        return {o: ObjectErrors.from_model(np.asarray(self.meshes[o].vertices, dtype=np.float64),
+        return {o: ObjectErrors.from_model(self.meshes[o][0],
                                            symmetry_transforms(info[o], step, include_zero_angle=zero_angle),
                                            info[o].diameter)
                 for o in self.target_objs}
@@ -180,8 +181,7 @@ class _ImageEvaluation:
 
     def renderer(self, w: int, h: int) -> WindowDepthRenderer:
         if (w, h) not in self.renderers:
-            self.renderers[(w, h)] = WindowDepthRenderer(
-                {o: (np.asarray(m.vertices), np.asarray(m.faces)) for o, m in self.meshes.items()}, w, h)
+            self.renderers[(w, h)] = WindowDepthRenderer(self.meshes, w, h)
         return self.renderers[(w, h)]
 
     def run(self, keys: list[ImageKey], progress: bool = False) -> tuple[dict[ImageKey, list[TargetErrors]], int]:

@@ -245,8 +245,7 @@ def evaluate_6d_detection(dataset_root: str | Path, results_csv: str | Path, spl
 
     def object_errors(o: int) -> ObjectErrors:
         if o not in objs:
-            mesh = ds.load_model(o, eval=True)
-            objs[o] = ObjectErrors.from_model(np.asarray(mesh.vertices, dtype=np.float64),
+            objs[o] = ObjectErrors.from_model(ds.load_model_geometry(o, eval=True)[0],
                                               symmetry_transforms(info[o], max_sym_disc_step), info[o].diameter)
         return objs[o]
 
