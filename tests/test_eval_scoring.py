@@ -191,7 +191,13 @@ def test_worker_processes_give_the_same_errors_and_scores(root: Path, monkeypatc
     for k, e in enumerate(ests):
         e.TCO[:3, :3] = e.TCO[:3, :3] @ rotation_about_axis(np.array([0.0, 1.0, 1.0]) / np.sqrt(2), np.deg2rad(5 + 4 * k))
         e.TCO[:3, 3] += [0.0, 0.01 * (k % 3), 0.01]
-    one, two = _evaluate(root, ests, auc=True), _evaluate(root, ests, auc=True, workers=2)
+    import multiprocessing
+
+    calls: list[int] = []  # meanwhile: once, when the workers run (forked ones exist by then)
+    one = _evaluate(root, ests, auc=True, meanwhile=lambda: calls.append(len(multiprocessing.active_children())))
+    two = _evaluate(root, ests, auc=True, workers=2,
+                    meanwhile=lambda: calls.append(len(multiprocessing.active_children())))
+    assert calls == [0, 2]
     assert len(one.targets) == len(two.targets) > 1 and 0.0 < one.scores.ar < 1.0
     for a, b in zip(one.targets, two.targets):
         assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)

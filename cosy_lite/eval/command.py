@@ -9,6 +9,7 @@ import argparse
 import json
 import math
 import sys
+import threading
 from pathlib import Path
 
 
@@ -92,6 +93,11 @@ def format_table(result) -> str:
     return "\n".join(lines)
 
 
+def _import_figure_modules() -> None:
+    import matplotlib.backends.backend_agg  # noqa: F401  (what plot_curves imports and draws with)
+    import matplotlib.figure  # noqa: F401
+
+
 def plot_curves(result, path: Path) -> None:
     """Recall vs threshold: VSD (one curve per tau, vs theta), MSSD (vs fraction of diameter), MSPD (vs px)."""
     from matplotlib.figure import Figure  # no pyplot: no GUI state, less to import
@@ -161,9 +167,12 @@ def run(args: argparse.Namespace) -> int:
         print(p)
     if task == "6d-detection":
         return _run_6d_detection(args, root)
+    # the figure's imports (~0.3 s) in a thread while the errors are computed (by then any worker is forked)
+    figure_imports = threading.Thread(target=_import_figure_modules, name="figure imports", daemon=True)
     result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                       args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
-                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None))
+                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None),
+                      meanwhile=figure_imports.start)
     print(format_table(result))
     out = args.out or scores_folder(args.results)
     atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")

@@ -26,6 +26,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -253,11 +254,12 @@ def _run_worker(keys: list[ImageKey]) -> tuple[dict[ImageKey, list[TargetErrors]
 
 
 def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int, progress: bool,
-                     ev: _ImageEvaluation | None = None) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
+                     ev: _ImageEvaluation | None = None,
+                     meanwhile: Callable[[], None] | None = None) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
     """:meth:`_ImageEvaluation.run` over ``keys`` in ``workers`` processes, in chunks of
     consecutive images. With ``ev`` (this process's evaluation, meshes and object tables built), the
     workers are forked from this process and start with all of it; else they
-    are spawned and build their own from ``args``."""
+    are spawned and build their own from ``args``. ``meanwhile`` is called once they all run."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -276,6 +278,8 @@ def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int, progress: 
     try:
         with pool as ex:
             futures = {ex.submit(_run_worker, c): k for k, c in enumerate(chunks)}
+            if meanwhile is not None:  # (every worker is forked by now: the first submit starts them all)
+                meanwhile()
             bar = tqdm(total=len(keys), desc=f"eval ({workers} processes)", unit="im", disable=not progress)
             for f in as_completed(futures):
                 errors, width = f.result()
@@ -310,6 +314,7 @@ def evaluate(
     progress: bool = True,
     auc: bool = False,
     workers: int | None = 1,
+    meanwhile: Callable[[], None] | None = None,
 ) -> EvalResult:
     """Compute VSD, MSSD and MSPD (and ADD, ADI with ``auc``) of every evaluated estimate and score them (BOP19).
 
@@ -329,6 +334,9 @@ def evaluate(
             not part of BOP19, which the toolkit's evaluation computes without; ~40 % more time).
         workers: processes computing the errors (images split between them; the same scores as 1);
             None: :func:`auto_workers` of the number of images.
+        meanwhile: called (once) when the errors start being computed, after any worker process
+            is forked: a place to start work of this process that does not wait for the scores,
+            such as a thread importing what the caller will need next.
     """
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1 (or None: automatic), got {workers}")
@@ -339,12 +347,14 @@ def evaluate(
     if workers is None:
         workers = auto_workers(len(keys))
     if workers == 1 or len(keys) < 2:
+        if meanwhile is not None:
+            meanwhile()
         errors, im_width = ev.run(keys, progress)
     elif fork_is_safe():
         ev.prepare()
-        errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress, ev)
+        errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress, ev, meanwhile)
     else:
-        errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress)
+        errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress, meanwhile=meanwhile)
     out = [te for k in keys for te in errors[k]]
     n_eval = sum(len(te.scores) for te in out)
     params, info = ev.params, ev.ds.models_info
