@@ -122,10 +122,11 @@ class ObjectErrors:
     diameter: float
     hull: np.ndarray  # [H,3] convex hull vertices
     probes: list[np.ndarray] = field(default_factory=list)  # per level [P,3], subsets of hull
-    tree: cKDTree | None = None
     centre: np.ndarray = field(default_factory=lambda: np.zeros(3))  # [3] bounding-box centre
     radius: float = 0.0  # max distance of a vertex from ``centre``
     samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [M,3] for the ADI bound: probes[-1]
+    # ADI's tables, built on its first use (an evaluation without the AUC never needs them):
+    tree: cKDTree | None = None  # k-d tree of ``pts``
     nearest_sample: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [N] index into samples
     sample_dist: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [N] ||v - its nearest sample||
 
@@ -142,10 +143,14 @@ class ObjectErrors:
         probes = [hull[order[:n]] for n in PROBE_SIZES]
         centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
         radius = float(np.linalg.norm(pts - centre, axis=1).max())
-        samples = probes[-1]
-        sample_dist, nearest_sample = cKDTree(samples).query(pts, k=1)
-        return ObjectErrors(pts, syms, float(diameter), hull, probes, cKDTree(pts), centre, radius,
-                            samples, nearest_sample, sample_dist)
+        return ObjectErrors(pts, syms, float(diameter), hull, probes, centre, radius, probes[-1])
+
+    def _adi_tables(self) -> cKDTree:
+        """The k-d tree of the vertices (and ``nearest_sample``, ``sample_dist``), built on first use."""
+        if self.tree is None:
+            self.sample_dist, self.nearest_sample = cKDTree(self.samples).query(self.pts, k=1)
+            self.tree = cKDTree(self.pts)
+        return self.tree
 
     # ------------------------------------------------------------------ MSSD / MSPD
     def mssd_mspd(self, TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -208,8 +213,7 @@ class ObjectErrors:
             if cap is not None and self._adi_beyond(q, self.samples @ M[:3, :3].T + M[:3, 3], cap):
                 out[i] = np.inf
                 continue
-            assert self.tree is not None, "ObjectErrors needs its k-d tree: build it with from_model"
-            dist, _ = self.tree.query(q, k=1)
+            dist, _ = self._adi_tables().query(q, k=1)
             out[i] = dist.mean()
         return out
 
@@ -220,7 +224,6 @@ class ObjectErrors:
             return True
         if len(self.samples) == 0:
             return False
-        assert self.tree is not None, "ObjectErrors needs its k-d tree: build it with from_model"
-        d, _ = self.tree.query(q_samples, k=1)
+        d, _ = self._adi_tables().query(q_samples, k=1)
         lower = d[self.nearest_sample] - self.sample_dist * (1.0 + 1e-9) - 1e-12
         return bool(np.maximum(lower, 0.0).mean() >= cap)

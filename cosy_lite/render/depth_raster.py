@@ -78,9 +78,12 @@ def back_face_sign(vertices: np.ndarray, faces: np.ndarray) -> float:
     """
     from cosy_lite.render._raster_kernels import component_labels
 
-    _, welded = np.unique(vertices, axis=0, return_inverse=True)
-    f = welded.reshape(-1)[faces].astype(np.int64)
-    n = int(f.max()) + 1
+    order = np.lexsort(vertices.T[::-1])  # equal positions next to each other
+    ranked = vertices[order]
+    welded = np.empty(len(vertices), np.int64)  # vertex -> index of its position
+    welded[order] = np.cumsum(np.r_[True, np.any(ranked[1:] != ranked[:-1], axis=1)]) - 1
+    f = welded[faces]
+    n = int(welded.max()) + 1
     a, b = f.ravel(), f[:, [1, 2, 0]].ravel()
     if not np.array_equal(np.sort(a * n + b), np.sort(b * n + a)):
         return 0.0
