@@ -174,3 +174,18 @@ def test_culling_stops_where_the_near_plane_cuts_the_mesh():
     culled = rasterize_depth(v, f, T, K, (0, 0, W, H), znear=0.05, cull=back_face_sign(v, f))
     assert np.count_nonzero(both) > 1000 and both[both > 0].min() > 0.05  # the inside: walls behind the plane
     np.testing.assert_array_equal(culled, both)
+
+
+def test_samples_on_shared_edges_belong_to_one_triangle():
+    """A square whose sides and diagonal run through pixel centres (u, v = 100.5 .. 110.5): GL's
+    rule gives the samples on its top and left sides and each one on the diagonal to exactly one of
+    the two triangles, and none on the right and bottom sides: rows and columns 100..109."""
+    corners_px = np.array([[100.5, 100.5], [110.5, 100.5], [110.5, 110.5], [100.5, 110.5]])
+    v = np.c_[(corners_px - [320.0, 240.0]) / 500.0, np.ones(4)]  # z = 1: u = 320 + 500 x
+    halves = [rasterize_depth(*mesh_arrays(v, np.array([tri])), np.eye(4), K, (90, 90, 120, 120)) > 0
+              for tri in ([0, 1, 2], [0, 2, 3])]
+    assert not (halves[0] & halves[1]).any()
+    covered = np.zeros((30, 30), bool)
+    covered[10:20, 10:20] = True  # rows / columns 100..109 of the window at (90, 90)
+    np.testing.assert_array_equal(halves[0] | halves[1], covered)
+    assert halves[0][10, 10] and halves[0][10, 19] and halves[1][19, 10]  # the diagonal's first sample: upper-right

@@ -20,6 +20,7 @@ SUBPIXELS = 256.0  # GL's sub-pixel precision (8 bits: llvmpipe, and the GPUs of
 # sample that its front faces do not, but an edge-on sliver's depth plane is ill-conditioned, and the
 # nearer of two such planes decides the depth on a few silhouette pixels as the two-sided draw does.
 CULL_MIN_AREA2 = 0.5
+EDGE_BIAS = 2.0 ** -17  # half the step of the edge functions' values (see draw_triangle)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -65,12 +66,21 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
     if area < 0:  # two-sided: either winding
         Aa, Ba, Ca, Ab, Bb, Cb, Ac, Bc, Cc = -Aa, -Ba, -Ca, -Ab, -Bb, -Cb, -Ac, -Bc, -Cc
     # A sample on an edge (E = 0) is inside if the triangle is right of it (a left edge: A > 0) or
-    # below a horizontal one (a top edge, image rows down: B > 0).
-    oa = not (Aa > 0 or (Aa == 0 and Ba > 0))  # edge opposite a open (E = 0 outside)
-    ob = not (Ab > 0 or (Ab == 0 and Bb > 0))
-    oc = not (Ac > 0 or (Ac == 0 and Bc > 0))
-    P = Q = 0.0  # 1 / z = iza + P (u - ua) + Q (v - va), from the exact corners (set at the first sample inside)
-    plane = False
+    # below a horizontal one (a top edge, image rows down: B > 0). Elsewhere the edge is open: E > 0
+    # is needed, i.e. E >= 2^-16, as E is a multiple of 2^-16 (corners on the 1/256 grid, samples
+    # at half pixels, all exact): E - EDGE_BIAS >= 0, one test for all three edges.
+    if not (Aa > 0 or (Aa == 0 and Ba > 0)):
+        Ca -= EDGE_BIAS
+    if not (Ab > 0 or (Ab == 0 and Bb > 0)):
+        Cb -= EDGE_BIAS
+    if not (Ac > 0 or (Ac == 0 and Bc > 0)):
+        Cc -= EDGE_BIAS
+    P = Q = 0.0  # 1 / z = iza + P (u - ua) + Q (v - va), from the exact corners
+    det = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
+    if det != 0.0:
+        inv = 1.0 / det
+        P = ((izb - iza) * (vc - va) - (izc - iza) * (vb - va)) * inv
+        Q = ((izc - iza) * (ub - ua) - (izb - iza) * (uc - ua)) * inv
     for r in range(r0, r1 + 1):
         py = r + 0.5
         ra, rb, rc = Ba * py + Ca, Bb * py + Cb, Bc * py + Cc
@@ -79,17 +89,8 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
             ea = Aa * px + ra
             eb = Ab * px + rb
             ec = Ac * px + rc
-            if ea < 0.0 or eb < 0.0 or ec < 0.0:
+            if min(ea, min(eb, ec)) < 0.0:
                 continue
-            if (ea == 0.0 and oa) or (eb == 0.0 and ob) or (ec == 0.0 and oc):
-                continue
-            if not plane:
-                plane = True
-                det = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
-                if det != 0.0:
-                    inv = 1.0 / det
-                    P = ((izb - iza) * (vc - va) - (izc - iza) * (vb - va)) * inv
-                    Q = ((izc - iza) * (ub - ua) - (izb - iza) * (uc - ua)) * inv
             iz = iza + P * (px - ua) + Q * (py - va)  # (<= 0 on a sliver whose plane overshoots: not drawn)
             if iz > out[r - y0, col - x0]:
                 out[r - y0, col - x0] = iz
