@@ -116,20 +116,6 @@ def test_the_pixels_of_the_gl_renderer():
             assert np.median(diff) < 1e-6 and diff.max() < 5e-5
 
 
-def test_distances_are_those_of_the_depth_bit_for_bit():
-    from cosy_lite.eval.depth_renderer import Window
-    from cosy_lite.eval.image_errors import distance_map
-
-    box = trimesh.creation.box(extents=[0.04, 0.03, 0.02]).subdivide()
-    mesh = mesh_arrays(box.vertices, box.faces)
-    T = _pose([0.03, -0.02, 0.45], trimesh.transformations.euler_matrix(0.3, -0.5, 1.1)[:3, :3])
-    window = (310, 200, 400, 260)
-    depth = rasterize_depth(*mesh, T, K, window)
-    dist = rasterize_depth(*mesh, T, K, window, distance=True)
-    assert dist.dtype == np.float64 and np.count_nonzero(dist) > 500
-    np.testing.assert_array_equal(dist, distance_map(depth, K, Window(*window)))
-
-
 def test_closed_meshes_skip_their_back_faces_and_draw_the_same_pixels():
     from cosy_lite.render.depth_raster import back_face_sign
 

@@ -98,13 +98,11 @@ class WindowDepthRenderer:
             lo, hi = v.min(axis=0), v.max(axis=0)
             self._corners[int(obj_id)] = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), axis=-1).reshape(-1, 3)
 
-    def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window, distance: bool = False) -> np.ndarray:
+    def render(self, obj_id: int, TCO: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
         """Depth [h,w] float32 (m, 0 = background) of object ``obj_id`` at ``TCO`` [4,4] inside ``window``.
 
         ``K`` [3,3] is the full image's intrinsics; the result equals ``full[y0:y1, x0:x1]`` of a
-        full-image render wherever the object's projection lies inside the window. ``distance``:
-        float64 distances from the camera centre instead (see
-        :func:`~cosy_lite.render.depth_raster.rasterize_depth`).
+        full-image render wherever the object's projection lies inside the window.
         """
         from cosy_lite.render.depth_raster import rasterize_depth
 
@@ -116,12 +114,11 @@ class WindowDepthRenderer:
         TCO = np.asarray(TCO, dtype=np.float64)
         z = (self._corners[obj_id] @ TCO[:3, :3].T + TCO[:3, 3])[:, 2]
         if window.empty or z.max() <= NEAR_MIN_M:
-            return np.zeros(window.shape, np.float64 if distance else np.float32)
+            return np.zeros(window.shape, np.float32)
         near = max(NEAR_MIN_M, 0.5 * float(z.min()))  # as the toolkit: the plane only cuts what touches the camera
         return rasterize_depth(*self._meshes[obj_id], TCO, K, (window.x0, window.y0, window.x1, window.y1), near,
-                               distance, self._cull[obj_id])
+                               self._cull[obj_id])
 
-    def render_many(self, items: list[tuple[int, np.ndarray, Window]], K: np.ndarray,
-                    distance: bool = False) -> list[np.ndarray]:
+    def render_many(self, items: list[tuple[int, np.ndarray, Window]], K: np.ndarray) -> list[np.ndarray]:
         """:meth:`render` of every ``(obj_id, TCO, window)``."""
-        return [self.render(obj_id, TCO, K, window, distance) for obj_id, TCO, window in items]
+        return [self.render(obj_id, TCO, K, window) for obj_id, TCO, window in items]

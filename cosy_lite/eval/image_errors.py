@@ -46,19 +46,6 @@ class PairErrors:
         return PairErrors(np.ones((E, G, len(VSD_TAUS))), *(np.full((E, G), np.inf) for _ in range(4)))
 
 
-def distance_map(depth: np.ndarray, K: np.ndarray, window: Window) -> np.ndarray:
-    """Depth [h,w] of ``window`` (any unit, 0 = none) -> float64 distance from the camera centre.
-
-    The toolkit's ``depth_im_to_dist_im_fast``: ``sqrt((X d)^2 + (Y d)^2 + d^2)`` with
-    ``X = (x - cx) / fx``, ``Y = (y - cy) / fy`` at pixel indices (x, y) of the full image.
-    """
-    h, w = depth.shape
-    xs = (np.arange(window.x0, window.x0 + w) - K[0, 2]) / np.float64(K[0, 0])
-    ys = (np.arange(window.y0, window.y0 + h) - K[1, 2]) / np.float64(K[1, 1])
-    d = depth.astype(np.float64)
-    return np.sqrt((xs[None, :] * d) ** 2 + (ys[:, None] * d) ** 2 + d**2)
-
-
 def mssd_mspd_errors(obj: ObjectErrors, T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """MSSD [E] (m) and MSPD [E] (px) of estimates ``T_est`` [E,4,4] against one GT pose, as the toolkit's
     ``eval_calc_errors.py``: MSSD is +inf where the bounding spheres do not overlap (``||t_e - t_g|| >= diameter``)."""
@@ -86,15 +73,6 @@ def _vsd_pairs(obj_id: int, obj: ObjectErrors, T_est: list[np.ndarray], gt_TCO: 
     radius = 0.5 * obj.diameter
     return [(e, g, ("est", obj_id, e), ("gt", gkey)) for g, (T_gt, gkey) in enumerate(zip(gt_TCO, gt_keys))
             for e, T_e in enumerate(T_est) if pose_errors.sphere_projections_overlap(radius, T_e[:3, 3], T_gt[:3, 3])]
-
-
-def _paste(dist: np.ndarray, src: Window, dst: Window) -> np.ndarray:
-    """``dist`` of window ``src`` placed in a zero map of window ``dst`` (which contains ``src``)."""
-    out = np.zeros(dst.shape)
-    if src.empty:
-        return out
-    out[src.y0 - dst.y0:src.y1 - dst.y0, src.x0 - dst.x0:src.x1 - dst.x0] = dist
-    return out
 
 
 class ImageErrors:
@@ -125,7 +103,7 @@ class ImageErrors:
         return self._depth
 
     def _render(self, key: tuple, obj_id: int, obj: ObjectErrors, TCO: np.ndarray) -> tuple[Window, np.ndarray]:
-        """Window and float64 distance map of one pose (cached under ``key``)."""
+        """Window and float32 depth map (m) of one pose (cached under ``key``)."""
         if key not in self._rendered:
             self._render_batch([(key, obj_id, obj, TCO)])
         return self._rendered[key]
@@ -135,9 +113,9 @@ class ImageErrors:
         r = self.renderer
         todo = [(key, obj_id, object_window(obj.hull, TCO, self.K, r.width, r.height), TCO)
                 for key, obj_id, obj, TCO in dict((p[0], p) for p in poses).values() if key not in self._rendered]
-        dists = r.render_many([(obj_id, TCO, win) for _, obj_id, win, TCO in todo], self.K, distance=True)
-        for (key, _, win, _), dist in zip(todo, dists):
-            self._rendered[key] = (win, dist)
+        depths = r.render_many([(obj_id, TCO, win) for _, obj_id, win, TCO in todo], self.K)
+        for (key, _, win, _), depth in zip(todo, depths):
+            self._rendered[key] = (win, depth)
 
     def prefetch(self, targets: list[tuple[int, ObjectErrors, list[PoseEstimate], list[np.ndarray], list[int]]]) -> None:
         """Render, as one batch, every pose that :meth:`target` of these ``(obj_id, obj, ests,
@@ -178,12 +156,9 @@ class ImageErrors:
         return out
 
     def _vsd(self, obj_id: int, obj: ObjectErrors, key_e, T_e, key_g, T_g) -> np.ndarray:
-        win_e, dist_e = self._render(key_e, obj_id, obj, T_e)
-        win_g, dist_g = self._render(key_g, obj_id, obj, T_g)
-        win = win_e.union(win_g)
-        if win.empty:  # neither pose is rendered in the image: empty union
+        win_e, depth_e = self._render(key_e, obj_id, obj, T_e)
+        win_g, depth_g = self._render(key_g, obj_id, obj, T_g)
+        if win_e.union(win_g).empty:  # neither pose is rendered in the image: empty union
             return np.ones(len(VSD_TAUS))
-        depth = self._test_depth()
-        dist_test = distance_map(depth[win.y0:win.y1, win.x0:win.x1], self.K, win)
-        return pose_errors.vsd(_paste(dist_e, win_e, win), _paste(dist_g, win_g, win), dist_test, self.delta,
-                               VSD_TAUS, diameter=obj.diameter)
+        return pose_errors.vsd_of_depth_windows(depth_e, (win_e.x0, win_e.y0), depth_g, (win_g.x0, win_g.y0),
+                                                self._test_depth(), self.K, self.delta, VSD_TAUS, diameter=obj.diameter)

@@ -153,21 +153,48 @@ def vsd(
     Returns:
         [T] errors in [0, 1].
     """
-    from cosy_lite.geometry.depth import visibility_mask, visibility_mask_est
-
     if not (dist_est.shape == dist_gt.shape == dist_test.shape) or dist_test.ndim != 2:
         raise ValueError(f"distance maps must be [H,W] of one shape, got {dist_est.shape}, {dist_gt.shape}, "
                          f"{dist_test.shape}")
-    taus = np.asarray(taus, dtype=np.float64).reshape(-1)
-    visib_gt = visibility_mask(dist_test, dist_gt, delta)
-    visib_est = visibility_mask_est(dist_test, dist_est, visib_gt, delta)
-    inter = visib_gt & visib_est
-    union_count = int(np.count_nonzero(visib_gt | visib_est))
-    if union_count == 0:
+    return _vsd(dist_est, (0, 0), dist_gt, (0, 0), dist_test, None, delta, taus, diameter)
+
+
+def vsd_of_depth_windows(
+    depth_est: np.ndarray, origin_est: tuple[int, int], depth_gt: np.ndarray, origin_gt: tuple[int, int],
+    depth_test: np.ndarray, K: np.ndarray, delta: float, taus: np.ndarray, diameter: float | None = None,
+) -> np.ndarray:
+    """:func:`vsd` from depth maps (m) that cover only image windows (0 outside them), over the
+    union of the two windows, their distances (and the test image's) computed pixel by pixel as the
+    toolkit's ``depth_im_to_dist_im_fast`` (float64 of the depth; ``K`` [3,3], pixel indices).
+
+    Args:
+        depth_est, depth_gt: [h,w] depth maps of the windows whose top-left pixels (x0, y0) are
+            ``origin_est``, ``origin_gt``.
+        depth_test: [H,W] the whole test image's depth (0 = no measurement).
+    """
+    return _vsd(depth_est, origin_est, depth_gt, origin_gt, depth_test, K, delta, taus, diameter)
+
+
+def _vsd(map_est: np.ndarray, origin_est: tuple[int, int], map_gt: np.ndarray, origin_gt: tuple[int, int],
+         map_test: np.ndarray, K: np.ndarray | None, delta: float, taus: np.ndarray,
+         diameter: float | None) -> np.ndarray:
+    """VSD over the union of two windows: distance maps (``K`` None) or depth maps (compiled loop:
+    :func:`cosy_lite.eval._vsd_kernel.vsd_counts`)."""
+    from cosy_lite.eval._vsd_kernel import vsd_counts
+
+    taus = np.ascontiguousarray(taus, dtype=np.float64).reshape(-1)
+    (ex0, ey0), (gx0, gy0) = (int(v) for v in origin_est), (int(v) for v in origin_gt)
+    boxes = [(x, y, x + m.shape[1], y + m.shape[0]) for (x, y), m in (((ex0, ey0), map_est), ((gx0, gy0), map_gt))
+             if m.size]
+    if not boxes:
         return np.ones(len(taus))
-    costs = np.abs(dist_gt[inter].astype(np.float64) - dist_est[inter].astype(np.float64))
-    if diameter is not None:
-        costs /= float(diameter)
-    costs.sort()
-    matches = np.searchsorted(costs, taus, side="left")  # number of costs < tau
-    return (union_count - matches) / float(union_count)
+    x0, y0 = max(0, min(b[0] for b in boxes)), max(0, min(b[1] for b in boxes))
+    x1, y1 = min(map_test.shape[1], max(b[2] for b in boxes)), min(map_test.shape[0], max(b[3] for b in boxes))
+    fx, fy, cx, cy = (1.0, 1.0, 0.0, 0.0) if K is None else (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    matches = np.zeros(len(taus), np.int64)
+    union = vsd_counts(map_est, ex0, ey0, map_gt, gx0, gy0, map_test, K is not None, float(fx), float(fy),
+                       float(cx), float(cy), x0, y0, x1, y1, float(delta), taus,
+                       float(diameter) if diameter is not None else 0.0, matches)
+    if union == 0:
+        return np.ones(len(taus))
+    return (union - matches) / float(union)

@@ -157,22 +157,14 @@ def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear, cull):
 
 
 @njit(cache=True, nogil=True)
-def finish(out, x0, y0, fx, fy, cx, cy, distance):
-    """The 1/z-buffer ``out`` (0 where empty) in place -> depth rounded to float32 (0 where empty);
-    with ``distance``, then the distance from the camera centre as the toolkit's
-    ``depth_im_to_dist_im_fast`` computes it (float64 of the float32 depth, at pixel indices)."""
+def finish(out, depth):
+    """The 1/z-buffer ``out`` (0 where empty) -> ``depth`` (float32, 0 where empty)."""
     h, w = out.shape
     for r in range(h):
-        Y = (r + y0 - cy) / fy
         for col in range(w):
             iz = out[r, col]
-            if iz == 0.0:
-                continue
-            d = np.float64(np.float32(1.0 / iz))
-            if distance:
-                X = (col + x0 - cx) / fx
-                d = np.sqrt((X * d) ** 2 + (Y * d) ** 2 + d ** 2)
-            out[r, col] = d
+            if iz != 0.0:
+                depth[r, col] = np.float32(1.0 / iz)
 
 
 @njit(cache=True, nogil=True)

@@ -23,8 +23,7 @@ import numpy as np
 
 
 def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, TCO: np.ndarray, K: np.ndarray,
-                    window: tuple[int, int, int, int], znear: float = 1e-3, distance: bool = False,
-                    cull: float = 0.0) -> np.ndarray:
+                    window: tuple[int, int, int, int], znear: float = 1e-3, cull: float = 0.0) -> np.ndarray:
     """Depth [y1 - y0, x1 - x0] float32 (m, 0 = background) of the mesh at ``TCO`` [4,4] in the
     image rows ``y0:y1``, columns ``x0:x1`` (``window = (x0, y0, x1, y1)``) of the camera ``K``
     [3,3] (OpenCV, no skew): those pixels of a full-image render, exactly.
@@ -32,9 +31,6 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, TCO: np.ndarray, K:
     Args:
         vertices: [N,3] float64 (m); faces: [F,3] int32 indices into them (see :func:`mesh_arrays`).
         znear: clipping plane (m, > 0); the part of the mesh nearer than it is not drawn.
-        distance: return instead the float64 distance from the camera centre of each pixel's
-            float32 depth, as :func:`cosy_lite.eval.image_errors.distance_map` (VSD's input), in the
-            same pass.
         cull: :func:`back_face_sign` of the mesh (its back faces are skipped: ~1.6x faster), or 0
             (default) to draw every face both ways.
     """
@@ -42,7 +38,7 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, TCO: np.ndarray, K:
 
     x0, y0, x1, y1 = (int(v) for v in window)
     if x1 <= x0 or y1 <= y0:
-        return np.zeros((max(0, y1 - y0), max(0, x1 - x0)), np.float64 if distance else np.float32)
+        return np.zeros((max(0, y1 - y0), max(0, x1 - x0)), np.float32)
     if not znear > 0:
         raise ValueError(f"znear must be > 0, got {znear}")
     K = np.asarray(K, dtype=np.float64)
@@ -55,8 +51,9 @@ def rasterize_depth(vertices: np.ndarray, faces: np.ndarray, TCO: np.ndarray, K:
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     draw_mesh(out, vertices, faces, np.ascontiguousarray(TCO[:3, :3]), np.ascontiguousarray(TCO[:3, 3]),
               fx, fy, cx, cy, x0, y0, float(znear), float(cull))
-    finish(out, x0, y0, fx, fy, cx, cy, distance)
-    return out if distance else out.astype(np.float32)
+    depth = np.zeros(out.shape, np.float32)
+    finish(out, depth)
+    return depth
 
 
 def warm_up() -> None:
