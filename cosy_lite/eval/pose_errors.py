@@ -188,8 +188,11 @@ def _vsd(map_est: np.ndarray, origin_est: tuple[int, int], map_gt: np.ndarray, o
              if m.size]
     if not boxes:
         return np.ones(len(taus))
-    x0, y0 = max(0, min(b[0] for b in boxes)), max(0, min(b[1] for b in boxes))
-    x1, y1 = min(map_test.shape[1], max(b[2] for b in boxes)), min(map_test.shape[0], max(b[3] for b in boxes))
+    x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+    x1, y1 = max(b[2] for b in boxes), max(b[3] for b in boxes)
+    if x0 < 0 or y0 < 0 or x1 > map_test.shape[1] or y1 > map_test.shape[0]:
+        raise ValueError(f"windows {boxes} (x0, y0, x1, y1) are not inside the {map_test.shape[1]}x"
+                         f"{map_test.shape[0]} test image")
     fx, fy, cx, cy = (1.0, 1.0, 0.0, 0.0) if K is None else (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     matches = np.zeros(len(taus), np.int64)
     union = vsd_counts(map_est, ex0, ey0, map_gt, gx0, gy0, map_test, K is not None, float(fx), float(fy),
