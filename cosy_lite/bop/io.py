@@ -197,6 +197,10 @@ def _numbers(path: Path, fld: str, value: Any, n: int) -> np.ndarray:
 
 def _integers(path: Path, fld: str, value: Any, n: int) -> list[int]:
     """``n`` integers (written as JSON integers or integral floats); anything else raises."""
+    if type(value) is int and n == 1:  # JSON integers, the usual case: nothing to convert or check
+        return [value]
+    if type(value) is list and len(value) == n and all(type(v) is int for v in value):
+        return list(value)
     arr = _numbers(path, fld, value, n)
     if not np.all(arr == np.round(arr)):
         raise BopFormatError(path, fld, f"expected {n} integers, got {arr.tolist()}")

@@ -58,18 +58,20 @@ def object_window(pts: np.ndarray, TCO: np.ndarray, K: np.ndarray, width: int, h
         The window clipped to the image; the whole image if a point is closer than
         ``NEAR_MIN_M`` to the camera plane (its projection is unbounded); empty if all are behind.
     """
-    p = pts @ TCO[:3, :3].T + TCO[:3, 3]
-    z = p[:, 2]
-    if np.all(z <= 0):
+    from cosy_lite.render._raster_kernels import projected_bounds
+
+    TCO = np.asarray(TCO, dtype=np.float64)
+    u0, u1, v0, v1, z0, z1 = projected_bounds(np.asarray(pts, dtype=np.float64), np.ascontiguousarray(TCO[:3, :3]),
+                                              np.ascontiguousarray(TCO[:3, 3]), np.asarray(K, dtype=np.float64))
+    if z1 <= 0:
         return EMPTY_WINDOW
-    if np.any(z < NEAR_MIN_M):
+    if z0 < NEAR_MIN_M:
         return Window(0, 0, width, height)
-    uv = (p @ np.asarray(K, dtype=np.float64).T)[:, :2] / z[:, None]
     # A pixel (c, r) is sampled at (c + 0.5, r + 0.5); triangles cover samples inside their projection.
-    x0 = int(np.floor(uv[:, 0].min() - 0.5)) - margin
-    x1 = int(np.ceil(uv[:, 0].max() - 0.5)) + margin + 1
-    y0 = int(np.floor(uv[:, 1].min() - 0.5)) - margin
-    y1 = int(np.ceil(uv[:, 1].max() - 0.5)) + margin + 1
+    x0 = int(np.floor(u0 - 0.5)) - margin
+    x1 = int(np.ceil(u1 - 0.5)) + margin + 1
+    y0 = int(np.floor(v0 - 0.5)) - margin
+    y1 = int(np.ceil(v1 - 0.5)) + margin + 1
     w = Window(max(0, x0), max(0, y0), min(width, x1), min(height, y1))
     return EMPTY_WINDOW if w.empty else w
 

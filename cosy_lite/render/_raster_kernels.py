@@ -157,6 +157,24 @@ def draw_mesh(out, vertices, faces, R, t, fx, fy, cx, cy, x0, y0, znear, cull):
 
 
 @njit(cache=True, nogil=True)
+def projected_bounds(pts, R, t, K):
+    """(u min, u max, v min, v max, z min, z max) of the points ``pts`` [N,3] at ``R``, ``t``, seen
+    by ``K`` [3,3] (u, v = (K p)[:2] / z; meaningful where every z > 0)."""
+    lo_u = lo_v = lo_z = np.inf
+    hi_u = hi_v = hi_z = -np.inf
+    for i in range(pts.shape[0]):
+        x = R[0, 0] * pts[i, 0] + R[0, 1] * pts[i, 1] + R[0, 2] * pts[i, 2] + t[0]
+        y = R[1, 0] * pts[i, 0] + R[1, 1] * pts[i, 1] + R[1, 2] * pts[i, 2] + t[1]
+        z = R[2, 0] * pts[i, 0] + R[2, 1] * pts[i, 1] + R[2, 2] * pts[i, 2] + t[2]
+        u = (K[0, 0] * x + K[0, 1] * y + K[0, 2] * z) / z
+        v = (K[1, 0] * x + K[1, 1] * y + K[1, 2] * z) / z
+        lo_u, hi_u = min(lo_u, u), max(hi_u, u)
+        lo_v, hi_v = min(lo_v, v), max(hi_v, v)
+        lo_z, hi_z = min(lo_z, z), max(hi_z, z)
+    return lo_u, hi_u, lo_v, hi_v, lo_z, hi_z
+
+
+@njit(cache=True, nogil=True)
 def finish(out, depth):
     """The 1/z-buffer ``out`` (0 where empty) -> ``depth`` (float32, 0 where empty)."""
     h, w = out.shape
