@@ -80,6 +80,14 @@ def test_other_files_are_left_to_trimesh(tmp_path: Path):
     data = _binary_ply(tmp_path / "full.ply", v, f).read_bytes()
     cases["truncated"].write_bytes(data[: len(data) - 10])
     cases["not a ply"].write_text("solid cube\nendsolid\n")
+    # hostile list counts: negative, 4e9, a float type
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            b"property float z\nelement face 1\nproperty list %s int vertex_indices\nend_header\n")
+    body = np.zeros(9, "<f4").tobytes()
+    for name, ctype, count in (("negative count", b"char", np.int8(-3)), ("huge count", b"uint", np.uint32(4e9)),
+                               ("float count", b"float", np.float32(3.0))):
+        cases[name] = tmp_path / f"{name}.ply"
+        cases[name].write_bytes(head % ctype + body + count.tobytes() + np.arange(3, dtype="<i4").tobytes())
     for name, path in cases.items():
         assert read_triangles(path) is None, name
     # through io, the fallback gives trimesh's arrays (quads split in two) or its error, named

@@ -59,12 +59,14 @@ def _record_dtype(props: list[list[bytes]], order: str, data: memoryview, offset
             fields.append((f"p{i}", t))
             size += t.itemsize
             continue
-        if p[1] not in _TYPES or p[2] not in _TYPES:
+        if _TYPES.get(p[1], "f")[0] not in "iu" or p[2] not in _TYPES:  # counts are integers
             return None
         ct, it = np.dtype(order + _TYPES[p[1]]), np.dtype(order + _TYPES[p[2]])
         if offset + size + ct.itemsize > len(data):
             return None
         n = int(np.frombuffer(data, ct, 1, offset + size)[0])
+        if not 0 <= n <= len(data) // it.itemsize:
+            return None
         fields += [(f"n{i}", ct), (f"p{i}", it, (n,))]
         size += ct.itemsize + n * it.itemsize
     return np.dtype(fields)
