@@ -328,7 +328,7 @@ def load_model_geometry(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def read_model_arrays(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(vertices [N,3] float64 in the file's units, faces [F,3] int64) of a PLY model, unchecked;
     read without trimesh where the file allows (:func:`cosy_lite.bop.ply.read_triangles`: binary
-    triangle meshes, as BOP's, in ~1 ms), else by trimesh."""
+    triangle meshes, as BOP's), else by trimesh."""
     from cosy_lite.bop.ply import read_triangles
 
     path = Path(path)

@@ -278,7 +278,7 @@ def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int, progress: 
     try:
         with pool as ex:
             futures = {ex.submit(_run_worker, c): k for k, c in enumerate(chunks)}
-            if meanwhile is not None:  # (every worker is forked by now: the first submit starts them all)
+            if meanwhile is not None:  # (forked workers all start at the first submit: none is forked later)
                 meanwhile()
             bar = tqdm(total=len(keys), desc=f"eval ({workers} processes)", unit="im", disable=not progress)
             for f in as_completed(futures):
