@@ -80,5 +80,21 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                                 prog or f"cosy-lite {args.command}")
 
 
+# Commands whose process ends without the interpreter's teardown once they have returned: they
+# leave no file open, no thread or child process running, nothing buffered but stdout and stderr.
+# Freeing numba's and matplotlib's objects at exit took 0.19 s after a 2.2 s evaluation (measured).
+FAST_EXIT = frozenset({"eval"})
+
+
+def console_main() -> None:
+    """The ``cosy-lite`` program: :func:`main` on ``sys.argv``, then exit (at once for :data:`FAST_EXIT`)."""
+    code = main()
+    if len(sys.argv) > 1 and sys.argv[1] in FAST_EXIT:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

@@ -283,6 +283,46 @@ def test_eval_command_writes_json_and_png(root: Path, capsys):
     assert (out / "recall_curves.png").stat().st_size > 1000
 
 
+def test_eval_program_ends_at_once_with_its_outputs_complete(root: Path):
+    # ``python -m cosy_lite.cli eval`` (what the console script runs): two forked workers, the depth
+    # decoded ahead, the process ended without the interpreter's teardown; the table, the JSON and
+    # the PNG are complete, and a bad file still exits 1 with its report.
+    csv = root.parent / "gt_tiny-test.csv"
+    write_results_csv(csv, _gt_estimates())
+    out = root.parent / "out"
+    cmd = [sys.executable, "-m", "cosy_lite.cli", "eval", "--dataset", str(root), "--results", str(csv), "--out",
+           str(out), "--no-progress", "--workers", "2"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "AR_MSSD" in r.stdout and r.stdout.rstrip().endswith("recall_curves.png")
+    assert json.loads((out / "scores.json").read_text())["ar"] == 1.0
+    assert (out / "recall_curves.png").stat().st_size > 1000
+    csv.write_text("scene_id,im_id,obj_id,score,R,t,time\n0,0,1,0.9,1 0 0 0 1 0 0 0 1,0 0 x,0.1\n")
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and "FAILED" in r.stdout
+
+
+def test_a_depth_that_fails_to_decode_ahead_is_reported_by_its_worker(root: Path, monkeypatch):
+    # The prefetch thread decodes in image order and stops at the first image it cannot load; the
+    # worker that evaluates that image raises the error naming the file, as without the prefetch.
+    from cosy_lite.errors import BopFormatError
+    from cosy_lite.eval import evaluator
+
+    depth = sorted((scene_dir(root) / "depth").glob("*.png"))[1]
+    depth.write_bytes(b"not a png")
+    csv = root.parent / "gt_tiny-test.csv"
+    write_results_csv(csv, _gt_estimates())
+    ev = evaluator._ImageEvaluation(root, csv, None, None, 0.01, True, -1.0, False)
+    keys = sorted(ev.by_image)
+    prefetch = evaluator._DepthPrefetch(ev, keys)
+    prefetch.start()
+    prefetch.join()  # (run to its end: no stop)
+    assert list(ev.depths) == keys[:1] and ev.depths[keys[0]].dtype == np.float32
+    monkeypatch.setattr(evaluator, "fork_is_safe", lambda: True)
+    with pytest.raises(BopFormatError, match=depth.name):
+        _evaluate(root, _gt_estimates(), workers=2)
+
+
 def test_eval_command_reports_images_without_estimates(root: Path, capsys):
     """Images whose targets got no estimate count as missed, and the report says which (it said nothing)."""
     from cosy_lite.cli import main

@@ -95,19 +95,19 @@ def test_a_dense_mesh_is_tested_on_a_subsample_and_keeps_its_symmetries(monkeypa
     """Above ``max_points`` vertices only an even stride of them is transformed (the cost is bounded by
     the sample, not the mesh; no wall-clock bound, which a busy machine would break), and the sample
     still finds the cylinder's continuous axis and its flip."""
-    from cosy_lite.geometry import symmetries
+    import scipy.spatial
 
     mesh = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=256).subdivide().subdivide()
     assert len(mesh.vertices) > 5000
     queried: list[int] = []
-    real_tree = symmetries.cKDTree
+    real_tree = scipy.spatial.cKDTree  # (symmetries imports it where it builds the tree)
 
     class CountingTree(real_tree):
         def query(self, x, *args, **kwargs):
             queried.append(len(x))
             return super().query(x, *args, **kwargs)
 
-    monkeypatch.setattr(symmetries, "cKDTree", CountingTree)
+    monkeypatch.setattr(scipy.spatial, "cKDTree", CountingTree)
     discrete, continuous = find_symmetries(mesh.vertices, _diameter(mesh.vertices[::4]), max_points=500)
     assert queried and max(queried) <= 500
     assert len(continuous) == 1 and abs(abs(float(continuous[0][0][2])) - 1.0) < 1e-6

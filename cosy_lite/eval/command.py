@@ -119,7 +119,7 @@ def plot_curves(result, path: Path) -> None:
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)
     fig.suptitle(f"{result.dataset}/{result.split}: AR {s.ar:.4f}")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.045, right=0.99, bottom=0.12, top=0.86, wspace=0.15)  # (tight_layout: 0.05 s more)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
 

@@ -20,6 +20,7 @@ The rules of bop_toolkit ``eval_bop19_pose.py`` (with ``eval_calc_errors.py``,
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections import defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -151,6 +152,7 @@ class _ImageEvaluation:
         self._symmetries = (max_sym_disc_step, sym_zero_angle)
         self.sp = ds.split_params(self.split)
         self.renderers: dict[tuple[int, int], WindowDepthRenderer] = {}  # per image size
+        self.depths: dict[ImageKey, np.ndarray] = {}  # test depths decoded ahead (see _DepthPrefetch)
 
     @cached_property
     def meshes(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -202,7 +204,7 @@ class _ImageEvaluation:
                 if rec.gt_info is None or len(rec.gt_info) != len(rec.gt):
                     raise BopFormatError(ds.scene_dir(split, scene_id) / "scene_gt_info.json", str(im_id),
                                          "GT info (visib_fract) needed for every GT instance")
-                load_depth = _depth_loader(ds, rec)
+                load_depth = _depth_loader(ds, rec, self.depths.get((scene_id, im_id)))
                 size = sp.im_size if sp is not None else load_depth().shape[::-1]  # (width, height)
                 im_width = im_width or size[0]
                 image = ImageErrors(self.renderer(*size), load_depth, rec.camera.K, self.delta, pool, add_adi=self.auc)
@@ -351,7 +353,12 @@ def evaluate(
             meanwhile()
         errors, im_width = ev.run(keys, progress)
     elif fork_is_safe():
-        ev.prepare()
+        prefetch = _DepthPrefetch(ev, keys)  # the other core decodes depth images while this one prepares
+        prefetch.start()
+        try:
+            ev.prepare()
+        finally:
+            prefetch.stop()  # (no thread may run at the fork)
         errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress, ev, meanwhile)
     else:
         errors, im_width = _parallel_errors(args, keys, min(workers, len(keys)), progress, meanwhile=meanwhile)
@@ -368,9 +375,39 @@ def evaluate(
                       visib_gt_min, scores, out, time.perf_counter() - t0)
 
 
-def _depth_loader(ds: BopDataset, rec):
-    """A function returning the test depth [H,W] (m) of ``rec``, read from disk on the first call only."""
-    cache: list[np.ndarray] = []
+PREFETCH_MAX_IMAGES = 256  # depth images decoded ahead at most (float32: 1.2 MB each at 640 x 480)
+
+
+class _DepthPrefetch(threading.Thread):
+    """Decodes the test depths of ``keys``, in order, into ``ev.depths`` until :meth:`stop`: work for
+    a second core while one prepares what forked workers inherit (cv2 decodes without the GIL).
+    An image that fails to load is left to the worker, which reports it."""
+
+    def __init__(self, ev: _ImageEvaluation, keys: list[ImageKey]):
+        super().__init__(name="depth prefetch", daemon=True)
+        self.ev, self.keys = ev, keys[:PREFETCH_MAX_IMAGES]
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        ds, split = self.ev.ds, self.ev.split
+        for key in self.keys:
+            if self._stop_event.is_set():
+                return
+            try:
+                self.ev.depths[key] = ds.load_depth(ds.image(split, *key))
+            except Exception:  # (BopFormatError, a missing file...): raised again where the image is evaluated
+                return
+
+    def stop(self) -> None:
+        """Stop after the image being decoded; return when the thread has ended."""
+        self._stop_event.set()
+        self.join()
+
+
+def _depth_loader(ds: BopDataset, rec, depth: np.ndarray | None = None):
+    """A function returning the test depth [H,W] (m) of ``rec``: ``depth`` if given (decoded
+    ahead), else read from disk on the first call only."""
+    cache: list[np.ndarray] = [] if depth is None else [depth]
 
     def load() -> np.ndarray:
         if not cache:

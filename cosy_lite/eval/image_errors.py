@@ -111,7 +111,7 @@ class ImageErrors:
     def _render_batch(self, poses: list[tuple[tuple, int, ObjectErrors, np.ndarray]]) -> None:
         """Render ``(key, obj_id, obj, TCO)`` poses not yet cached, as one batch of the renderer."""
         r = self.renderer
-        todo = [(key, obj_id, object_window(obj.hull, TCO, self.K, r.width, r.height), TCO)
+        todo = [(key, obj_id, object_window(obj.pts, TCO, self.K, r.width, r.height), TCO)
                 for key, obj_id, obj, TCO in dict((p[0], p) for p in poses).values() if key not in self._rendered]
         depths = r.render_many([(obj_id, TCO, win) for _, obj_id, win, TCO in todo], self.K)
         for (key, _, win, _), depth in zip(todo, depths):

@@ -3,20 +3,18 @@
 The values are those of the definitions in :mod:`cosy_lite.eval.pose_errors` (the toolkit's loops),
 obtained with less work:
 
-* **MSSD** ``min_S max_v ||R_e v + t_e - (R_g (R_S v + t_S) + t_g)||``: for one symmetry the error
-  is ``||A v + b||``, a convex function of ``v``, so its maximum over the vertices is attained at a
-  vertex of their convex hull: only hull vertices are evaluated.
-* **MSPD** (not convex) and the minimum over symmetries of both: exact branch and bound. The
-  maximum over a subset of the vertices is a lower bound of the maximum over all of them; bounds
-  from small vertex subsets (farthest-point samples of the hull, coarse to fine) are computed for
-  every symmetry at once, and the full maximum is computed only for symmetries whose bound is
-  below the best full value found so far, in increasing order of bound.
+* **MSSD, MSPD**: ``min_S max_v`` of the distance between the estimated and the symmetric GT
+  vertex (projected, for MSPD) in one compiled loop (:mod:`cosy_lite.eval._object_error_kernels`),
+  an exact branch and bound: the maxima over a few probe vertices (farthest-point samples) bound
+  every symmetry from below, symmetries are taken in increasing order of bound, and a symmetry's
+  maximum stops as soon as it reaches the best value found. Poses where a projection could divide
+  by zero (a vertex in the camera plane) go to the reference definition, whose NaN rules hold there.
 * **ADI**: ``min_u ||T_g v - T_e u|| = min_u ||T_e^-1 T_g v - u||`` (rigid motions keep
   distances), so one k-d tree of the model vertices, built once, answers every pair. Where only
   values under a cap matter, a pair is first bounded from below by the exact distances of a few
-  sample points (the finest MSSD probes): a vertex ``v`` at ``rho`` from its nearest sample ``s``
-  is at least ``d(s) - rho`` from the other pose (the motion keeps ``||v - s||``), and queries
-  far from the surface are the slow ones of a k-d tree.
+  sample points: a vertex ``v`` at ``rho`` from its nearest sample ``s`` is at least ``d(s) - rho``
+  from the other pose (the motion keeps ``||v - s||``), and queries far from the surface are the
+  slow ones of a k-d tree. These tables (and scipy) are loaded on ADI's first use only.
 
 Everything is float64, metres and pixels.
 """
@@ -26,87 +24,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import ConvexHull, cKDTree
 
-PROBE_SIZES = (16, 128)  # vertices per bound level (farthest-point samples of the hull vertices)
+PROBES = 16  # vertices bounding each symmetry's MSSD / MSPD from below (objects with symmetries)
+ADI_SAMPLES = 128  # vertices bounding ADI from below (the AUC's cap)
 
 
 def farthest_point_order(pts: np.ndarray, n: int) -> np.ndarray:
     """Indices of ``n`` points of ``pts`` [N,3] by farthest-point sampling, starting from the point
     farthest from the centroid (deterministic)."""
-    n = min(n, len(pts))
-    idx = np.empty(n, dtype=np.int64)
-    idx[0] = int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
-    d = np.linalg.norm(pts - pts[idx[0]], axis=1)
-    for i in range(1, n):
-        idx[i] = int(np.argmax(d))
-        d = np.minimum(d, np.linalg.norm(pts - pts[idx[i]], axis=1))
-    return idx
+    from cosy_lite.eval._object_error_kernels import farthest_point_order as fps
 
-
-def hull_vertex_indices(pts: np.ndarray) -> np.ndarray:
-    """Sorted indices of the vertices of the convex hull of ``pts`` [N,3]; all points if the hull is
-    degenerate (flat models). Points qhull merges as coplanar lie within round-off of the hull, so
-    a maximum of a convex function over the vertices changes by round-off at most."""
-    try:
-        hull = ConvexHull(pts)
-    except Exception:  # qhull raises QhullError on flat / degenerate point sets
-        return np.arange(len(pts))
-    return np.sort(hull.vertices.astype(np.int64))
-
-
-def _project(p: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points [...,3] -> pixels [...,2] (toolkit ``project_pts``: K p, then divide by z)."""
-    uvw = p @ K.T
-    return uvw[..., :2] / uvw[..., 2:3]
-
-
-def _max_norm(d: np.ndarray) -> np.ndarray:
-    """max over the point axis of ||d||: [...,P,D] -> [...] (NaN if any distance is NaN)."""
-    return np.sqrt(np.einsum("...pd,...pd->...p", d, d).max(axis=-1))
-
-
-def min_of_max(n_syms: int, bound, full) -> float:
-    """``min_k full(k)`` over ``k < n_syms`` by branch and bound.
-
-    Args:
-        bound: ``bound(level, ks) -> [len(ks)]`` lower bounds of ``full`` for symmetries ``ks``;
-            ``level`` = 0, 1, ... coarse to fine (``len(PROBE_SIZES)`` levels).
-        full: ``full(ks) -> [len(ks)]`` the exact values.
-    Returns:
-        The exact minimum (NaN bounds count as +inf; a NaN full value is kept as the toolkit would).
-    """
-    if n_syms == 1:
-        return float(full(np.array([0]))[0])
-    ks = np.arange(n_syms)
-    lb = np.nan_to_num(bound(0, ks), nan=np.inf)
-    done: dict[int, float] = {}
-
-    def evaluate(sel: np.ndarray) -> float:
-        new = [int(k) for k in sel if int(k) not in done]
-        if new:
-            for k, v in zip(new, full(np.array(new))):
-                done[k] = float(v)
-        return min(done[int(k)] for k in sel)
-
-    best = evaluate(ks[[int(np.argmin(lb))]])
-    for level in range(1, len(PROBE_SIZES)):
-        keep = lb < best
-        ks, lb = ks[keep], lb[keep]
-        if len(ks) <= 4:
-            break
-        lb = np.maximum(lb, np.nan_to_num(bound(level, ks), nan=np.inf))
-        best = min(best, evaluate(ks[[int(np.argmin(lb))]]))
-    order = np.argsort(lb, kind="stable")
-    ks, lb = ks[order], lb[order]
-    i = 0
-    while i < len(ks) and lb[i] < best:
-        j = i + 1
-        while j < len(ks) and j - i < 8 and lb[j] < best:  # a few at a time: one vectorised call
-            j += 1
-        best = min(best, evaluate(ks[i:j]))
-        i = j
-    return best
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    return fps(pts, min(int(n), len(pts)))
 
 
 @dataclass
@@ -120,13 +49,13 @@ class ObjectErrors:
     pts: np.ndarray  # [N,3]
     syms: np.ndarray  # [S,4,4]
     diameter: float
-    hull: np.ndarray  # [H,3] convex hull vertices
-    probes: list[np.ndarray] = field(default_factory=list)  # per level [P,3], subsets of hull
+    probes: np.ndarray  # [P] indices into pts: the bounds of the symmetries (empty without symmetries)
+    reach: float  # max ||S v|| over vertices and symmetries: GT-posed points lie within it of t_gt (m)
     centre: np.ndarray = field(default_factory=lambda: np.zeros(3))  # [3] bounding-box centre
     radius: float = 0.0  # max distance of a vertex from ``centre``
-    samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [M,3] for the ADI bound: probes[-1]
     # ADI's tables, built on its first use (an evaluation without the AUC never needs them):
-    tree: cKDTree | None = None  # k-d tree of ``pts``
+    tree: object | None = None  # scipy cKDTree of ``pts``
+    _samples: np.ndarray | None = None  # [M,3] farthest-point samples for the ADI bound
     nearest_sample: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [N] index into samples
     sample_dist: np.ndarray = field(default_factory=lambda: np.zeros(0))  # [N] ||v - its nearest sample||
 
@@ -138,16 +67,25 @@ class ObjectErrors:
             raise ValueError(f"pts must be [N,3] with N > 0, got {pts.shape}")
         if syms.ndim != 3 or syms.shape[1:] != (4, 4) or len(syms) == 0:
             raise ValueError(f"syms must be [S,4,4] with S > 0 (identity included), got {syms.shape}")
-        hull = pts[hull_vertex_indices(pts)]
-        order = farthest_point_order(hull, max(PROBE_SIZES))
-        probes = [hull[order[:n]] for n in PROBE_SIZES]
+        probes = farthest_point_order(pts, PROBES) if len(syms) > 1 else np.zeros(0, np.int64)
+        norms = np.linalg.norm(pts, axis=1)
+        reach = float(norms.max() + np.linalg.norm(syms[:, :3, 3], axis=1).max())
         centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
         radius = float(np.linalg.norm(pts - centre, axis=1).max())
-        return ObjectErrors(pts, syms, float(diameter), hull, probes, centre, radius, probes[-1])
+        return ObjectErrors(pts, syms, float(diameter), probes, reach, centre, radius)
 
-    def _adi_tables(self) -> cKDTree:
+    @property
+    def samples(self) -> np.ndarray:
+        """[M,3] the vertices whose exact distances bound ADI from below (farthest-point samples)."""
+        if self._samples is None:
+            self._samples = self.pts[farthest_point_order(self.pts, ADI_SAMPLES)]
+        return self._samples
+
+    def _adi_tables(self):
         """The k-d tree of the vertices (and ``nearest_sample``, ``sample_dist``), built on first use."""
         if self.tree is None:
+            from scipy.spatial import cKDTree
+
             self.sample_dist, self.nearest_sample = cKDTree(self.samples).query(self.pts, k=1)
             self.tree = cKDTree(self.pts)
         return self.tree
@@ -156,34 +94,28 @@ class ObjectErrors:
     def mssd_mspd(self, TCO_est: np.ndarray, TCO_gt: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """MSSD [E] (m) and MSPD [E] (px) of estimates ``TCO_est`` [E,4,4] against ``TCO_gt`` [4,4], ``K`` [3,3].
 
-        Exactly ``pose_errors.mssd_mspd`` (no shortcut: see :meth:`errors` for the toolkit's).
+        Exactly ``pose_errors.mssd_mspd`` (without the toolkit's sphere shortcut: see
+        ``image_errors.mssd_mspd_errors``).
         """
+        from cosy_lite.eval._object_error_kernels import mssd_mspd_sq
+
         TCO_est = np.asarray(TCO_est, dtype=np.float64).reshape(-1, 4, 4)
-        K = np.asarray(K, dtype=np.float64)
-        G = np.asarray(TCO_gt, dtype=np.float64) @ self.syms  # [S,4,4] GT pose of each symmetric copy
-        mssd = np.array([self._mssd_one(T, G) for T in TCO_est])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mspd = np.array([self._mspd_one(T, G, K) for T in TCO_est])
+        K = np.ascontiguousarray(K, dtype=np.float64)
+        TCO_gt = np.asarray(TCO_gt, dtype=np.float64)
+        G = np.ascontiguousarray((TCO_gt @ self.syms)[:, :3, :])  # [S,3,4] GT pose of each symmetric copy
+        P = np.ascontiguousarray(K @ G)  # [S,3,4] their projections
+        gt_in_front = TCO_gt[2, 3] > self.reach  # every GT-posed vertex has z > 0: finite projections
+        mssd, mspd = np.empty(len(TCO_est)), np.empty(len(TCO_est))
+        for e, T in enumerate(TCO_est):
+            sq3, sq2 = mssd_mspd_sq(self.pts, np.ascontiguousarray(T[:3]), G, P, K, self.probes)
+            mssd[e], mspd[e] = np.sqrt(sq3), np.sqrt(sq2) if gt_in_front else np.nan
+            if not (np.isfinite(mssd[e]) and np.isfinite(mspd[e])):  # the reference's rules for NaN / inf
+                from cosy_lite.eval.pose_errors import mssd_mspd
+
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ref = mssd_mspd(T[None], TCO_gt, K, self.pts, self.syms)
+                mssd[e], mspd[e] = ref[0][0], ref[1][0]
         return mssd, mspd
-
-    def _mssd_one(self, T: np.ndarray, G: np.ndarray) -> float:
-        A = T[None, :3, :3] - G[:, :3, :3]  # [S,3,3]: T v - G_k v = A_k v + b_k
-        b = T[None, :3, 3] - G[:, :3, 3]  # [S,3]
-
-        def err(pts: np.ndarray, ks: np.ndarray) -> np.ndarray:
-            return _max_norm(pts[None] @ np.swapaxes(A[ks], 1, 2) + b[ks, None])
-
-        return min_of_max(len(G), lambda level, ks: err(self.probes[level], ks), lambda ks: err(self.hull, ks))
-
-    def _mspd_one(self, T: np.ndarray, G: np.ndarray, K: np.ndarray) -> float:
-        def err(pts: np.ndarray, uv_est: np.ndarray, ks: np.ndarray) -> np.ndarray:
-            uv_gt = _project(pts[None] @ np.swapaxes(G[ks, :3, :3], 1, 2) + G[ks, None, :3, 3], K)  # [k,P,2]
-            return _max_norm(uv_est[None] - uv_gt)
-
-        uv_probes = [_project(p @ T[:3, :3].T + T[:3, 3], K) for p in self.probes]
-        uv_all = _project(self.pts @ T[:3, :3].T + T[:3, 3], K)
-        return min_of_max(len(G), lambda level, ks: err(self.probes[level], uv_probes[level], ks),
-                          lambda ks: err(self.pts, uv_all, ks))
 
     # ------------------------------------------------------------------ ADD / ADI
     def add(self, TCO_est: np.ndarray, TCO_gt: np.ndarray) -> np.ndarray:

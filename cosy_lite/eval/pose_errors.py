@@ -10,7 +10,6 @@ These functions are written as the toolkit's loops and serve as the reference;
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 SYM_CHUNK_POINTS = 2_000_000  # symmetries x points evaluated at once (memory bound)
 
@@ -108,6 +107,8 @@ def add(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray) -> float:
 
 def adi(TCO_est: np.ndarray, TCO_gt: np.ndarray, pts: np.ndarray) -> float:
     """ADD-S / ADI [m]: mean over GT-posed points of the distance to the nearest estimated-posed point (cKDTree)."""
+    from scipy.spatial import cKDTree
+
     pts = _check_points(pts)
     pts_est = transform_points(_check_pose(TCO_est, "TCO_est"), pts)
     pts_gt = transform_points(_check_pose(TCO_gt, "TCO_gt"), pts)

@@ -21,7 +21,6 @@ import math
 from typing import Protocol, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 EPS_MIN = 0.015  # m, the paper's truncation of the Hausdorff tolerance
 EPS_DIAMETER_FRACTION = 0.1  # eps = max(EPS_MIN, 0.1 * diameter)
@@ -123,6 +122,8 @@ class _Checker:
     """
 
     def __init__(self, vertices: np.ndarray, eps: float, colors: np.ndarray | None, colour_threshold: float, max_points: int):
+        from scipy.spatial import cKDTree  # (imported here: the evaluator's symmetry tables need no scipy)
+
         self.tree = cKDTree(vertices)
         n = len(vertices)
         idx = np.arange(n) if n <= max_points else np.round(np.linspace(0, n - 1, max_points)).astype(np.int64)

@@ -48,6 +48,8 @@ def draw_triangle(out, x0, y0, ua, va, iza, ub, vb, izb, uc, vc, izc, sua, sva, 
     the exact ones: ``1 / z`` is a plane over the image. ``cull`` (+1 / -1): skip the triangle if
     its snapped signed area has that sign (and is above :data:`CULL_MIN_AREA2`); 0: two-sided."""
     h, w = out.shape
+    if cull != 0.0 and cull * ((sub - sua) * (svc - sva) - (suc - sua) * (svb - sva)) > CULL_MIN_AREA2:
+        return  # a back face (the snapped area, exact: as below), rejected before any other work
     # pixel columns / rows whose sample (c + 0.5, r + 0.5) may be inside, clipped to the window
     c0 = max(int(np.ceil(min(sua, sub, suc) - 0.5)), x0)
     c1 = min(int(np.floor(max(sua, sub, suc) - 0.5)), x0 + w - 1)
