@@ -137,6 +137,23 @@ def test_score_start_measures_the_start_stage(tiny_synth_root):
     assert out["instances"] == 3 and out["candidates"] == 2
     assert 0 <= out["within_30deg"] <= out["any_candidate_within_30deg"] <= 1 and out["median_deg"] >= 0
     assert out["textured_instances"] <= 3 and out["seconds_per_instance"] > 0
+    assert sum(x["instances"] for x in out["per_object"].values()) == 3
+
+
+def test_start_errors_summary_counts_flips_on_textured_objects_only():
+    # Errors (deg) of 6 instances: object 1 (textured) 10, 170, 40; object 2 (untextured) 175, 5, 20.
+    from cosy_lite.reference.score_start import start_errors_summary
+
+    chosen = np.array([10.0, 170.0, 40.0, 175.0, 5.0, 20.0])
+    best = np.array([10.0, 12.0, 40.0, 3.0, 5.0, 20.0])
+    out = start_errors_summary(chosen, best, np.array([1, 1, 1, 2, 2, 2]), {1})
+    assert out["instances"] == 6 and out["textured_instances"] == 3
+    assert out["within_30deg"] == pytest.approx(3 / 6) and out["flipped_textured"] == pytest.approx(1 / 3)
+    assert out["median_deg"] == pytest.approx(30.0) and out["any_candidate_within_30deg"] == pytest.approx(5 / 6)
+    one, two = out["per_object"]["1"], out["per_object"]["2"]
+    assert (one["instances"], one["within_30deg"], one["flipped_textured"], one["median_deg"]) == (3, 1 / 3, 1 / 3, 40.0)
+    assert two["flipped_textured"] is None and two["within_30deg"] == pytest.approx(2 / 3)
+    assert two["any_candidate_within_30deg"] == 1.0
 
 
 def _scorer_file(path, obj_ids=(1, 2, 5, 8), shading="headlight", scale=1.0):

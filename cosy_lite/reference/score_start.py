@@ -7,7 +7,8 @@ by appearance too with ``--start appearance``; with ``--candidates K`` > 1 the K
 iteration of ``--refiner`` and the most confident is kept, as the predictor does). Reported: the
 share whose chosen start is within 30 deg of GT (symmetry-aware: the closest pose of the object's
 symmetry set), the share of the textured objects' starts that are flipped (> 150 deg), the median
-error, the share for which one of the K candidates is within 30 deg, and seconds per instance.
+error, the share for which one of the K candidates is within 30 deg, and seconds per instance; the
+same per object (``per_object``: where the flips are).
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
     templates = start_templates(start, models, objects, renderer, templates_cache, scorer_net)
     assert templates is not None
     textured = set(textured_obj_ids(renderer, obj_ids))
-    chosen, best, flipped_textured = [], [], []
+    chosen, best, obj_of = [], [], []  # per matched instance: chosen start's error, best candidate's, object
     seconds = 0.0
     with torch.no_grad():
         for r in tqdm(order.tolist(), desc=f"score start ({start})", unit="instance", disable=not progress):
@@ -89,20 +90,32 @@ def score_start(dataset_root: str | Path, start: str = "appearance", n_candidate
             err = rotation_errors_deg(candidates[:, :3, :3].double().numpy(), it.TCO[:3, :3].double().numpy(), symmetries)
             chosen.append(float(err[pick]))
             best.append(float(err.min()))
-            if it.obj_id in textured:
-                flipped_textured.append(float(err[pick]) > FLIPPED_DEG)
+            obj_of.append(it.obj_id)
     renderer.close()
     if not chosen:
         raise CosyLiteError(f"{dataset_root}: no instance could be matched (every mask empty)")
-    errors = np.array(chosen)
     return {"split": split, "start": start, "candidates": n_candidates, "refiner": None if refiner is None else str(refiner),
-            "scorer": None if scorer is None else str(scorer),
-            "min_visib": min_visib, "instances": len(chosen), "textured_instances": len(flipped_textured),
-            "within_30deg": float(np.mean(errors < WITHIN_DEG)),
-            "flipped_textured": float(np.mean(flipped_textured)) if flipped_textured else None,
-            "median_deg": float(np.median(errors)),
-            "any_candidate_within_30deg": float(np.mean(np.array(best) < WITHIN_DEG)),
+            "scorer": None if scorer is None else str(scorer), "min_visib": min_visib,
+            **start_errors_summary(np.array(chosen), np.array(best), np.array(obj_of), textured),
             "seconds_per_instance": seconds / len(chosen)}
+
+
+def start_errors_summary(chosen: np.ndarray, best: np.ndarray, obj_ids: np.ndarray, textured: set[int]) -> dict[str, Any]:
+    """The shares of :func:`score_start` from per-instance rotation errors (deg): ``chosen`` [N] of the
+    chosen start, ``best`` [N] of the best candidate, ``obj_ids`` [N]; flips counted on ``textured``
+    objects only (None where there is none). ``per_object``: the same per object id (as a string)."""
+
+    def summary(sel: np.ndarray) -> dict[str, Any]:
+        tex = sel & np.isin(obj_ids, sorted(textured))
+        return {"instances": int(sel.sum()), "textured_instances": int(tex.sum()),
+                "within_30deg": float(np.mean(chosen[sel] < WITHIN_DEG)),
+                "flipped_textured": float(np.mean(chosen[tex] > FLIPPED_DEG)) if tex.any() else None,
+                "median_deg": float(np.median(chosen[sel])),
+                "any_candidate_within_30deg": float(np.mean(best[sel] < WITHIN_DEG))}
+
+    out = summary(np.ones(len(chosen), bool))
+    out["per_object"] = {str(o): summary(obj_ids == o) for o in sorted(set(obj_ids.tolist()))}
+    return out
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
