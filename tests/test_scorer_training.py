@@ -65,9 +65,16 @@ def test_observations_are_the_instances_of_the_split_with_their_template_errors(
     assert torch.equal(again.train_obs.errors_deg, obs.errors_deg) and torch.equal(again.val_obs.crops, task.val_obs.crops)
 
 
-def test_observations_described_again_when_the_split_gains_a_scene(tiny_synth_root, tmp_path):
+def test_observations_described_again_when_the_split_gains_a_scene(tiny_synth_root, tmp_path, monkeypatch):
+    import json
     import shutil
 
+    from cosy_lite.train import start_observations
+
+    described = []
+    observe_all = start_observations.observe_all
+    monkeypatch.setattr(start_observations, "observe_all",
+                        lambda instances, *a, **k: described.append(len(instances)) or observe_all(instances, *a, **k))
     root = tmp_path / "tiny"
     shutil.copytree(tiny_synth_root, root)
     cache_dir = tmp_path / "cache"
@@ -75,9 +82,28 @@ def test_observations_described_again_when_the_split_gains_a_scene(tiny_synth_ro
     n_before = len(before.train_obs) + len(before.val_obs)
     shutil.copytree(root / "train_pbr" / "000000", root / "train_pbr" / "000001")  # a second scene, same images
     _, after = _task(root, cache_dir)
-    # the new scene's instances are described too (a stale cache would give the old count)
+    # the new scene's instances are described too (a stale cache would give the old count), and only they
     assert len(after.train_obs) + len(after.val_obs) == 2 * n_before
-    assert len(list(cache_dir.glob("start_observations_train_*.npz"))) == 2
+    assert described == [n_before, n_before]
+    assert len(list(cache_dir.glob("start_observations_scene000000_*.npz"))) == 1
+    assert len(list(cache_dir.glob("start_observations_scene000001_*.npz"))) == 1
+    # each part assembled from the scenes' files equals the part described on its own, item for item
+    assert {s for s, _ in after.train_instances.image_keys()} == {0, 1}
+    for obs, part in ((after.train_obs, after.train_instances), (after.val_obs, after.val_instances)):
+        direct = observe_all(part, after.templates, after.symmetries, progress=False)
+        assert len(direct) == len(part) and torch.equal(direct.items, torch.arange(len(part)))
+        for f in start_observations.FIELDS:
+            assert torch.equal(getattr(obs, f), getattr(direct, f)), f
+    # a regenerated scene (a pose changed) is described again, the other one is not
+    path = root / "train_pbr" / "000001" / "scene_gt.json"
+    gt = json.loads(path.read_text())
+    first = next(iter(gt))
+    gt[first][0]["cam_t_m2c"][0] += 5.0
+    path.write_text(json.dumps(gt))
+    described.clear()
+    _task(root, cache_dir)
+    assert described == [n_before]
+    assert len(list(cache_dir.glob("start_observations_scene000001_*.npz"))) == 2
 
 
 def test_observations_described_by_two_processes_equal_one(tiny_synth_root, cache, monkeypatch):
@@ -92,7 +118,7 @@ def test_observations_described_by_two_processes_equal_one(tiny_synth_root, cach
     one = observe_all(instances, task.templates, task.symmetries, progress=False, workers=1)
     two = observe_all(instances, task.templates, task.symmetries, progress=False, workers=2)
     assert len(one) >= 20
-    for f in ("obj_ids", "crops", "iou", "errors_deg"):
+    for f in ("obj_ids", "crops", "iou", "errors_deg", "items"):
         assert torch.equal(getattr(one, f), getattr(two, f)), f
 
 

@@ -68,10 +68,18 @@ class PoseDataset(Dataset):
     def select_images(self, keys: set[tuple[int, int]]) -> "PoseDataset":
         """A copy holding only the items of the images ``keys`` (the table is shared)."""
         t = self.table
-        rows = t.image_idx[self.index]
-        keep = np.array([(int(t.scene_ids[r]), int(t.im_ids[r])) in keys for r in rows], dtype=bool)
+        wanted = {(int(s), int(i)) for s, i in keys}
+        image_rows = np.array([k in wanted for k in zip(t.scene_ids.tolist(), t.im_ids.tolist())], dtype=bool)
+        return self._restricted(image_rows)
+
+    def select_scenes(self, scene_ids: set[int]) -> "PoseDataset":
+        """A copy holding only the items of the scenes ``scene_ids`` (the table is shared)."""
+        return self._restricted(np.isin(self.table.scene_ids, np.asarray(sorted(scene_ids), dtype=np.int64)))
+
+    def _restricted(self, image_rows: np.ndarray) -> "PoseDataset":
+        """A copy keeping the items whose image row is True in ``image_rows`` [M], in their order."""
         out = copy.copy(self)
-        out.index = self.index[keep]
+        out.index = self.index[image_rows[self.table.image_idx[self.index]]]
         return out
 
     def fingerprint(self) -> str:

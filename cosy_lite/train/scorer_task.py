@@ -2,11 +2,12 @@
 
 Data: the GT instances of ``data.split`` (visible masks standing in for detections), each described
 once by :mod:`cosy_lite.train.start_observations` (crop, silhouette IoU and rotation error of every
-template) and cached; ``data.val_images`` images held out (never trained on) for validation. The
-templates' frozen descriptors come from :class:`~cosy_lite.nets.appearance_templates.AppearanceTemplates`
-(the same cache as inference). Per batch: the crops augmented (:func:`augment_crops`: scale and
-shift of the square, colour gain, brightness, gamma, noise, blur, a black occluder) -> the scorer ->
-scores of all templates of each instance's object -> :func:`~cosy_lite.nets.appearance_scorer.listwise_loss`.
+template) and cached scene by scene; ``data.val_images`` images held out (never trained on) for
+validation. The templates' frozen descriptors come from
+:class:`~cosy_lite.nets.appearance_templates.AppearanceTemplates` (the same cache as inference).
+Per batch: the crops augmented (:func:`augment_crops`: scale and shift of the square, colour gain,
+brightness, gamma, noise, blur, a black occluder) -> the scorer -> scores of all templates of each
+instance's object -> :func:`~cosy_lite.nets.appearance_scorer.listwise_loss`.
 Validation: the share of held-out instances whose best-scored template is within 30 deg of GT, the
 flips (> 150 deg) of the textured objects, the median error.
 """
@@ -28,7 +29,7 @@ from cosy_lite.geometry.symmetries import FLIPPED_DEG, WITHIN_DEG
 from cosy_lite.nets.appearance_scorer import AppearanceScorer, flip_loss, listwise_loss
 from cosy_lite.train.loop import LoopConfig
 from cosy_lite.train.schedule import OptimConfig
-from cosy_lite.train.start_observations import Instances, StartObservations, cache_key, observe_all
+from cosy_lite.train.start_observations import StartObservations, observations_by_scene
 
 
 @dataclass
@@ -137,27 +138,18 @@ class ScorerTask:
         self.symmetries = symmetries = {o: objects.symmetries[i][objects.sym_mask[i]][:, :3, :3].double().numpy()
                       for i, o in enumerate(self.obj_ids)}
         full = PoseDataset(self.dataset, cfg.data.split, obj_ids=self.obj_ids, min_visib_fract=cfg.data.min_visib_fract)
-        train_set, val_set = hold_out_images(full, cfg.data.val_images, cfg.loop.seed,
-                                             str(self.dataset.root / cfg.data.split))
+        self.train_instances, self.val_instances = hold_out_images(full, cfg.data.val_images, cfg.loop.seed,
+                                                                   str(self.dataset.root / cfg.data.split))
         t = self.templates
-        key = (self.dataset.root.resolve(), cfg.data.split, self.obj_ids, cfg.data.min_visib_fract, cfg.data.val_images,
-               cfg.loop.seed, t.n_rotations, t.seed, cfg.data.template_shading, sorted(t.model_keys.items()))
-        self.train_obs = self._observations(cache, "train", key, train_set, symmetries, progress)
-        self.val_obs = self._observations(cache, "val", key, val_set, symmetries, progress)
+        key = (self.dataset.root.resolve(), cfg.data.split, self.obj_ids, cfg.data.min_visib_fract, t.n_rotations,
+               t.seed, cfg.data.template_shading, sorted(t.model_keys.items()))
+        self.train_obs, self.val_obs = observations_by_scene(
+            full, [self.train_instances, self.val_instances], self.templates, symmetries, cache, key, progress=progress,
+            workers=self._observe_workers())
         self.template_descriptors = {o: t.appearance.descriptors(o) for o in self.obj_ids}
         self._descriptors_device = torch.device("cpu")
         renderer.close()
         self._initialised_from: str | None = None
-
-    def _observations(self, cache: Path, part: str, key: tuple, instances: Instances, symmetries: dict,
-                      progress: bool) -> StartObservations:
-        path = cache / f"start_observations_{part}_{cache_key(part, *key, instances.fingerprint())}.npz"
-        obs = StartObservations.load(path)
-        if obs is None:
-            obs = observe_all(instances, self.templates, symmetries, desc=f"describe {part} instances", progress=progress,
-                              workers=self._observe_workers())
-            obs.save(path)
-        return obs
 
     def _observe_workers(self) -> int:
         if self.cfg.data.observe_workers > 0:

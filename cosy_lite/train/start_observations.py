@@ -4,10 +4,11 @@ For each GT instance (its visible mask standing in for a detection): the crop th
 :func:`~cosy_lite.nets.appearance_templates.detection_crop` cuts (uint8), the silhouette soft IoU
 of each of its object's templates, and each template pose's rotation error to GT (deg,
 symmetry-aware), the pose placed on the detection exactly as inference places it
-(:meth:`SilhouetteTemplates.observe` / ``poses``). ~80 ms per instance on one core, so a split is
-described once and cached as ``.npz`` (no pickle) keyed by the dataset folder, split, instance
-selection, the instances themselves (scenes added to the split make a new description) and the
-template settings.
+(:meth:`SilhouetteTemplates.observe` / ``poses``). ~80 ms per instance on one core, so each scene
+of a split is described once and cached as its own ``.npz`` (no pickle), keyed by the dataset folder,
+split, instance selection, template settings and the scene's instances themselves
+(:func:`observations_by_scene`): a split that gains scenes describes only the new ones, and a
+regenerated scene is described again.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -29,9 +30,10 @@ from cosy_lite.nets.appearance_templates import CROP_SIZE, detection_crop
 from cosy_lite.nets.silhouette_templates import SilhouetteTemplates, mask_boxes
 
 if TYPE_CHECKING:
+    from cosy_lite.data.pose_dataset import PoseDataset
     from cosy_lite.structures import PoseSample
 
-FIELDS = ("obj_ids", "crops", "iou", "errors_deg")
+FIELDS = ("obj_ids", "crops", "iou", "errors_deg", "items")
 
 
 class Instances(Protocol):
@@ -47,12 +49,14 @@ class Instances(Protocol):
 @dataclass
 class StartObservations:
     """``obj_ids [M]`` int64, ``crops [M,3,S,S]`` uint8, ``iou [M,N]`` and ``errors_deg [M,N]`` float16
-    (N: templates per object)."""
+    (N: templates per object), ``items [M]`` int64: the index of each row's instance in what was
+    described (instances that cannot be observed have no row)."""
 
     obj_ids: Tensor
     crops: Tensor
     iou: Tensor
     errors_deg: Tensor
+    items: Tensor
 
     def __len__(self) -> int:
         return len(self.obj_ids)
@@ -72,7 +76,8 @@ class StartObservations:
             with np.load(path, allow_pickle=False) as f:
                 obs = cls(*(torch.from_numpy(f[k]) for k in FIELDS))
             m = len(obs.obj_ids)
-            if not (len(obs.crops) == len(obs.iou) == len(obs.errors_deg) == m and obs.crops.dtype == torch.uint8):
+            if not (len(obs.crops) == len(obs.iou) == len(obs.errors_deg) == len(obs.items) == m
+                    and obs.crops.dtype == torch.uint8):
                 raise ValueError("fields of different lengths or types")
             return obs
         except Exception as e:  # noqa: BLE001 - any damage: compute again
@@ -127,11 +132,17 @@ def observe_all(instances: Instances, templates: SilhouetteTemplates, symmetries
     bar.close()
     ids = [i for p in parts for i in p[0]]
     if not ids:
-        k = templates.n_rotations
-        return StartObservations(torch.zeros(0, dtype=torch.long), torch.zeros((0, 3, CROP_SIZE, CROP_SIZE), dtype=torch.uint8),
-                                 torch.zeros((0, k), dtype=torch.half), torch.zeros((0, k), dtype=torch.half))
+        return _empty(templates.n_rotations)
     crops, ious, errors = (torch.from_numpy(np.stack([x for p in parts for x in p[f]])) for f in (1, 2, 3))
-    return StartObservations(torch.tensor(ids), crops, ious, errors)
+    items = torch.tensor([i for p in parts for i in p[5]], dtype=torch.long)
+    return StartObservations(torch.tensor(ids), crops, ious, errors, items)
+
+
+def _empty(n_templates: int, m: int = 0) -> StartObservations:
+    """``m`` rows of zeros (to be filled)."""
+    return StartObservations(torch.zeros(m, dtype=torch.long), torch.zeros((m, 3, CROP_SIZE, CROP_SIZE), dtype=torch.uint8),
+                             torch.zeros((m, n_templates), dtype=torch.half), torch.zeros((m, n_templates), dtype=torch.half),
+                             torch.zeros(m, dtype=torch.long))
 
 
 _CHUNK = 64  # instances per task of a worker
@@ -151,10 +162,10 @@ def _observe_chunk(index: range) -> tuple:
 
 
 def _observe_range(instances: Instances, templates: SilhouetteTemplates, symmetries: dict[int, np.ndarray],
-                   index: range, bar: Any) -> tuple[list, list, list, list, int]:
-    """(obj_ids, crops, ious, errors, number left out) of the instances ``index`` (numpy arrays: they
-    travel back from a worker without torch's shared-memory handles)."""
-    ids, crops, ious, errors, skipped = [], [], [], [], 0
+                   index: range, bar: Any) -> tuple[list, list, list, list, int, list]:
+    """(obj_ids, crops, ious, errors, number left out, items) of the instances ``index`` (numpy arrays:
+    they travel back from a worker without torch's shared-memory handles)."""
+    ids, crops, ious, errors, skipped, items = [], [], [], [], 0, []
     for i in index:
         item = instances[i]
         seen = observe(item, templates, symmetries[int(item.obj_id)])
@@ -167,9 +178,71 @@ def _observe_range(instances: Instances, templates: SilhouetteTemplates, symmetr
         crops.append(seen[0].numpy())
         ious.append(seen[1].astype(np.float16))
         errors.append(seen[2].astype(np.float16))
-    return ids, crops, ious, errors, skipped
+        items.append(i)
+    return ids, crops, ious, errors, skipped, items
 
 
 def cache_key(*parts: Any) -> str:
     """A short hash of the settings that decide the observations."""
     return hashlib.sha256("|".join(str(p) for p in parts).encode()).hexdigest()[:20]
+
+
+def observations_by_scene(instances: PoseDataset, parts: Sequence[PoseDataset], templates: SilhouetteTemplates,
+                          symmetries: dict[int, np.ndarray], cache: Path, key: tuple, desc: str = "describe instances",
+                          progress: bool = True, workers: int = 1) -> list[StartObservations]:
+    """The observations of each of ``parts`` (image subsets of ``instances``, e.g. the training and
+    the held-out images), in the order of their items.
+
+    Each scene of ``instances`` is described once (:func:`observe_all`, the scenes not cached yet
+    together) and kept in its own file of ``cache``, named by ``key`` (the settings that decide the
+    observations), the scene and the fingerprint of its instances: a split that gains scenes describes
+    only those, and any other change to a scene describes it again. The parts are assembled from the
+    scenes' files in two passes (counts, then rows), so the memory holds each part once."""
+    scenes = {}
+    for scene_id in sorted({s for s, _ in instances.image_keys()}):
+        sub = instances.select_scenes({scene_id})
+        scenes[scene_id] = (sub, cache / f"start_observations_scene{scene_id:06d}_"
+                                          f"{cache_key(*key, scene_id, sub.fingerprint())}.npz")
+    missing = [s for s, (_, path) in scenes.items() if StartObservations.load(path) is None]
+    if missing:
+        todo = instances.select_scenes(set(missing))
+        obs = observe_all(todo, templates, symmetries, desc=f"{desc} ({len(missing)} of {len(scenes)} scenes)",
+                          progress=progress, workers=workers)
+        rows = todo.index[obs.items.numpy()]  # rows of the instance table
+        for scene_id in missing:
+            sub, path = scenes[scene_id]
+            mine = np.isin(rows, sub.index)
+            picked = _take(obs, torch.from_numpy(np.nonzero(mine)[0]))
+            picked.items = torch.from_numpy(np.searchsorted(sub.index, rows[mine]))  # the item in the scene
+            picked.save(path)
+        del obs
+    selected: list[list[np.ndarray]] = [[] for _ in parts]  # per part, per scene: the rows of the scene's file
+    for sub, path in scenes.values():
+        rows = sub.index[_load_items(path)]
+        for k, part in enumerate(parts):
+            selected[k].append(np.nonzero(np.isin(rows, part.index))[0])
+    out = [_empty(templates.n_rotations, sum(len(r) for r in sel)) for sel in selected]
+    start = [0] * len(parts)
+    for j, (sub, path) in enumerate(scenes.values()):
+        scene = StartObservations.load(path)
+        if scene is None:
+            raise RuntimeError(f"{path}: start observations removed or damaged while they were read")
+        rows = sub.index[scene.items.numpy()]
+        for k, part in enumerate(parts):
+            take = selected[k][j]
+            end = start[k] + len(take)
+            for f in FIELDS[:-1]:
+                getattr(out[k], f)[start[k]:end] = getattr(scene, f)[torch.from_numpy(take)]
+            out[k].items[start[k]:end] = torch.from_numpy(np.searchsorted(part.index, rows[take]))  # the item in the part
+            start[k] = end
+    return out
+
+
+def _take(obs: StartObservations, rows: Tensor) -> StartObservations:
+    return StartObservations(*(getattr(obs, f)[rows] for f in FIELDS))
+
+
+def _load_items(path: Path) -> np.ndarray:
+    """The ``items`` field alone (an ``.npz`` member is read on its own)."""
+    with np.load(path, allow_pickle=False) as f:
+        return f["items"]
