@@ -193,11 +193,11 @@ def test_worker_processes_give_the_same_errors_and_scores(root: Path, monkeypatc
         e.TCO[:3, 3] += [0.0, 0.01 * (k % 3), 0.01]
     import multiprocessing
 
-    calls: list[int] = []  # meanwhile: once, when the workers run (forked ones exist by then)
-    one = _evaluate(root, ests, auc=True, meanwhile=lambda: calls.append(len(multiprocessing.active_children())))
+    calls: list[int] = []  # before_errors: once, before any worker is forked
+    one = _evaluate(root, ests, auc=True, before_errors=lambda: calls.append(len(multiprocessing.active_children())))
     two = _evaluate(root, ests, auc=True, workers=2,
-                    meanwhile=lambda: calls.append(len(multiprocessing.active_children())))
-    assert calls == [0, 2]
+                    before_errors=lambda: calls.append(len(multiprocessing.active_children())))
+    assert calls == [0, 0]
     assert len(one.targets) == len(two.targets) > 1 and 0.0 < one.scores.ar < 1.0
     for a, b in zip(one.targets, two.targets):
         assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)
@@ -513,3 +513,31 @@ def test_workers_are_forked_only_from_a_process_without_torch():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                        cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 0 and r.stdout.split() == ["True", "False"], r.stdout + r.stderr
+
+
+def test_an_exception_before_the_errors_stops_the_evaluation_before_any_worker(root: Path, monkeypatch):
+    # (cosy-lite eval's rejection of bad input found by checks running beside the preparation)
+    from cosy_lite.eval import evaluator
+
+    def no_workers(*args, **kwargs):
+        raise AssertionError("workers started")
+
+    def rejected():
+        raise LookupError("rejected by the checks")
+
+    monkeypatch.setattr(evaluator, "fork_is_safe", lambda: True)
+    monkeypatch.setattr(evaluator, "_parallel_errors", no_workers)
+    with pytest.raises(LookupError, match="rejected"):
+        _evaluate(root, _gt_estimates(), workers=2, before_errors=rejected)
+
+
+def test_numba_starts_without_scipy_linalg_which_stays_importable():
+    code = ("import sys\nfrom cosy_lite.eval.evaluator import import_numba_without_blas\n"
+            "import_numba_without_blas()\nassert 'numba.np.arraymath' in sys.modules\n"
+            "assert 'scipy.linalg' not in sys.modules\n"
+            "from cosy_lite.render.depth_raster import warm_up\nwarm_up()\n"
+            "assert 'scipy.linalg' not in sys.modules\n"
+            "import scipy.linalg\nprint(scipy.linalg.det([[2.0, 0.0], [0.0, 3.0]]))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "6.0"

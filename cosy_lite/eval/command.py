@@ -9,7 +9,6 @@ import argparse
 import json
 import math
 import sys
-import threading
 from pathlib import Path
 
 
@@ -139,11 +138,13 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
 def run(args: argparse.Namespace) -> int:
     """Check the options, the results file and the dataset (every problem reported, nothing scored
     on bad input), then score and write ``scores.json`` + ``recall_curves.png``."""
+    from functools import partial
+
     from cosy_lite.bop.folders import dataset_folder
     from cosy_lite.bop.io import atomic_write_text
-    from cosy_lite.bop.params import dataset_name_of
-    from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results, report, summarised
-    from cosy_lite.eval.evaluator import eval_split, evaluate
+    from cosy_lite.bop.validate import report
+    from cosy_lite.eval.checks_and_figure import ChecksAndFigure
+    from cosy_lite.eval.evaluator import evaluate
 
     if problem := _argument_problem(args):
         print(f"error: {problem}", file=sys.stderr)
@@ -152,6 +153,42 @@ def run(args: argparse.Namespace) -> int:
     root = dataset_folder(args.dataset)
     if task.startswith("2d-"):
         return _run_2d(args, root, task)
+    subject = f"{args.results} on {root}"
+    if task == "6d-detection":
+        problems = _input_problems(args, root, task)
+        if _accepted(problems):
+            return _run_6d_detection(args, root)
+        return report(problems, subject)
+    # the checks and the figure's imports run beside the evaluation's preparation (a second core)
+    side = ChecksAndFigure(partial(_input_problems, args, root, task), plot_curves, _import_figure_modules)
+    try:
+        result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
+                          args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
+                          auc=getattr(args, "auc", False), workers=getattr(args, "workers", None),
+                          before_errors=lambda: _stop_unless_accepted(side.problems()))
+    except Exception:  # bad input may fail the reading before the checks have said why: their report first
+        problems = side.problems()
+        side.close()
+        if not _accepted(problems, quiet=True):
+            return report(problems, subject)
+        raise
+    try:
+        print(format_table(result))
+        out = args.out or scores_folder(args.results)
+        atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")
+        side.draw(result, out / "recall_curves.png")
+    finally:
+        side.close()
+    print(f"wrote {out / 'scores.json'} and {out / 'recall_curves.png'}")
+    return 0
+
+
+def _input_problems(args: argparse.Namespace, root: Path, task: str) -> list:
+    """Every problem of the results file and of the dataset parts the task reads."""
+    from cosy_lite.bop.params import dataset_name_of
+    from cosy_lite.bop.validate import TARGETS_FILE, Problem, check_dataset, check_results
+    from cosy_lite.eval.evaluator import eval_split
+
     problems = check_results(args.results, root, args.name, args.split,
                              allow_unknown_objects=task == "6d-detection")
     if root.is_dir():  # (a missing folder is reported by check_results)
@@ -161,24 +198,27 @@ def run(args: argparse.Namespace) -> int:
         if not (root / targets).is_file():
             problems.append(Problem(str(root / targets), "", f"file not found: the {task} evaluation scores "
                                     "the targets it lists"))
+    return problems
+
+
+def _accepted(problems: list, quiet: bool = False) -> bool:
+    """True if ``problems`` holds no error; then its warnings are printed (one line per kind) unless ``quiet``."""
+    from cosy_lite.bop.validate import summarised
+
     if any(p.severity == "error" for p in problems):
-        return report(problems, f"{args.results} on {root}")
-    for p in summarised(problems):
+        return False
+    for p in summarised(problems) if not quiet else []:
         print(p)
-    if task == "6d-detection":
-        return _run_6d_detection(args, root)
-    # the figure's imports (~0.3 s) in a thread while the errors are computed (by then any worker is forked)
-    figure_imports = threading.Thread(target=_import_figure_modules, name="figure imports", daemon=True)
-    result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
-                      args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
-                      auc=getattr(args, "auc", False), workers=getattr(args, "workers", None),
-                      meanwhile=figure_imports.start)
-    print(format_table(result))
-    out = args.out or scores_folder(args.results)
-    atomic_write_text(out / "scores.json", json.dumps(result.to_dict(), indent=1) + "\n")
-    plot_curves(result, out / "recall_curves.png")
-    print(f"wrote {out / 'scores.json'} and {out / 'recall_curves.png'}")
-    return 0
+    return True
+
+
+class _Rejected(Exception):
+    """The checks found errors: the evaluation stops before computing any error."""
+
+
+def _stop_unless_accepted(problems: list) -> None:
+    if not _accepted(problems):
+        raise _Rejected
 
 
 def _run_6d_detection(args: argparse.Namespace, root: Path) -> int:
