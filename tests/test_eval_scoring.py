@@ -541,3 +541,13 @@ def test_numba_starts_without_scipy_linalg_which_stays_importable():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "6.0"
+
+
+def test_guided_chunks_cover_the_keys_in_order_and_shrink():
+    from cosy_lite.eval.evaluator import guided_chunks
+
+    chunks = guided_chunks(list(range(100)), 2)
+    assert [k for c in chunks for k in c] == list(range(100))
+    sizes = [len(c) for c in chunks]
+    assert sizes[0] == 25 and sizes[-1] == 1 and sizes == sorted(sizes, reverse=True)
+    assert guided_chunks([], 2) == [] and guided_chunks(["a"], 4) == [["a"]]

@@ -274,6 +274,18 @@ def _run_worker(keys: list[ImageKey]) -> tuple[dict[ImageKey, list[TargetErrors]
     return _WORKER.run(keys)
 
 
+def guided_chunks(keys: list, workers: int) -> list[list]:
+    """``keys`` cut into consecutive chunks that shrink as the work left does (each a
+    ``1 / (2 workers)`` share of what remains, at least one key): few chunks to hand out, and the
+    workers end within about one image of each other."""
+    chunks, i = [], 0
+    while i < len(keys):
+        size = max(1, -(-(len(keys) - i) // (2 * workers)))
+        chunks.append(keys[i:i + size])
+        i += size
+    return chunks
+
+
 def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int, progress: bool,
                      ev: _ImageEvaluation | None = None) -> tuple[dict[ImageKey, list[TargetErrors]], int]:
     """:meth:`_ImageEvaluation.run` over ``keys`` in ``workers`` processes, in chunks of
@@ -286,8 +298,7 @@ def _parallel_errors(args: tuple, keys: list[ImageKey], workers: int, progress: 
     from tqdm import tqdm
 
     global _WORKER
-    n_chunks = min(len(keys), 4 * workers)
-    chunks = [keys[i * len(keys) // n_chunks:(i + 1) * len(keys) // n_chunks] for i in range(n_chunks)]
+    chunks = guided_chunks(keys, workers)
     out: dict[ImageKey, list[TargetErrors]] = {}
     widths: dict[int, int] = {}
     if ev is not None:
