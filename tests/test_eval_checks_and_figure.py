@@ -35,7 +35,7 @@ class Result:  # what draw() is given: a dataclass whose per-target errors it le
 @pytest.mark.parametrize("forked", [True, False])
 def test_checks_and_figure_where_forking_is_safe_or_not(tmp_path: Path, monkeypatch, forked: bool):
     monkeypatch.setattr(evaluator, "fork_is_safe", lambda: forked)
-    side = ChecksAndFigure(_checks, _plot, lambda: None)
+    side = ChecksAndFigure(_checks, lambda: None, _plot)
     (p,) = side.problems()
     assert p.severity == "warning" and p.field == "line 2"
     assert (p.message != f"checked in process {os.getpid()}") == forked
@@ -50,18 +50,18 @@ def test_checks_and_figure_where_forking_is_safe_or_not(tmp_path: Path, monkeypa
 
 def test_checks_that_raise_are_reported_where_they_ran(monkeypatch):
     monkeypatch.setattr(evaluator, "fork_is_safe", lambda: True)
-    side = ChecksAndFigure(_failing_checks, _plot, lambda: None)
+    side = ChecksAndFigure(_failing_checks, lambda: None, _plot)
     with pytest.raises(RuntimeError, match="OSError: results.csv: permission denied"):
         side.problems()
     side.close()
     monkeypatch.setattr(evaluator, "fork_is_safe", lambda: False)
     with pytest.raises(OSError, match="permission denied"):
-        ChecksAndFigure(_failing_checks, _plot, lambda: None)
+        ChecksAndFigure(_failing_checks, lambda: None, _plot)
 
 
 def test_the_forked_process_ends_when_no_figure_is_wanted(monkeypatch):
     monkeypatch.setattr(evaluator, "fork_is_safe", lambda: True)
-    side = ChecksAndFigure(_checks, _plot, lambda: None)
+    side = ChecksAndFigure(_checks, lambda: None, _plot)
     side.problems()
     proc = side._proc
     side.close()  # (bad input: nothing to draw)

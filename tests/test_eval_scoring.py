@@ -551,3 +551,29 @@ def test_guided_chunks_cover_the_keys_in_order_and_shrink():
     sizes = [len(c) for c in chunks]
     assert sizes[0] == 25 and sizes[-1] == 1 and sizes == sorted(sizes, reverse=True)
     assert guided_chunks([], 2) == [] and guided_chunks(["a"], 4) == [["a"]]
+
+
+def test_recall_figure_draws_the_curves_over_axes_drawn_ahead(root: Path, tmp_path: Path):
+    # cosy-lite eval draws the axes while the errors are computed, then only the curves and titles:
+    # the picture equals a full draw of the same figure, and nothing of one result stays in the next.
+    import dataclasses
+
+    from PIL import Image
+
+    from cosy_lite.eval.command import RecallFigure
+
+    r = _evaluate(root, _gt_estimates())
+    s = r.scores
+    worse = dataclasses.replace(r, scores=dataclasses.replace(s, recall_mssd=s.recall_mssd * 0.5,
+                                                              recall_vsd=s.recall_vsd * 0.3))
+    figure = RecallFigure(s.mspd_thresholds_px)
+    pictures = []
+    for k, result in enumerate((r, worse, r)):
+        figure.save(result, tmp_path / f"{k}.png")
+        pictures.append(np.asarray(Image.open(tmp_path / f"{k}.png")))
+    assert pictures[0].shape == (420, 1500, 4)
+    assert np.array_equal(pictures[0], pictures[2]) and not np.array_equal(pictures[0], pictures[1])
+    figure.canvas.draw()  # everything again, in matplotlib's order, with the last result's curves and titles
+    assert np.array_equal(np.asarray(figure.canvas.buffer_rgba()), pictures[2])
+    with pytest.raises(ValueError, match="MSPD thresholds"):
+        RecallFigure(s.mspd_thresholds_px * 2).save(r, tmp_path / "x.png")

@@ -1,8 +1,8 @@
 """The input checks and the recall figure of ``cosy-lite eval``, on a second core.
 
-Neither needs the errors until the very end: the checks (~0.15 s on the demo's file) and
-matplotlib's import (~0.3 s) run in a forked process while this one reads and prepares the
-evaluation, and the figure is drawn there once the scores are known. Where forking is not safe
+Neither needs the errors until the very end: the checks (~0.15 s on the demo's file), matplotlib's
+import (~0.3 s) and the figure's axes (~0.1 s) run in a forked process while this one reads and
+prepares the evaluation and computes the errors; the curves are drawn there once the scores are known. Where forking is not safe
 (:func:`cosy_lite.eval.evaluator.fork_is_safe`: not Linux, torch loaded, threads running), the
 same steps run in this process, in the same order.
 
@@ -23,10 +23,14 @@ from cosy_lite.bop.validate import Problem
 
 class ChecksAndFigure:
     """``checks() -> problems`` started at once (forked where safe); :meth:`problems` waits for
-    them, :meth:`draw` draws ``plot(result, png)``, :meth:`close` ends the process."""
+    them, :meth:`draw` draws the figure of a result, :meth:`close` ends the process.
 
-    def __init__(self, checks: Callable[[], list[Problem]], plot: Callable[[Any, Path], None],
-                 figure_imports: Callable[[], None]):
+    The figure: ``layout()`` returns its axes, drawn ahead (an object whose ``save(result, png)``
+    adds the curves), or None when they cannot be laid out ahead; then ``plot(result, png)`` draws
+    it whole. In this process (not forked) only ``plot`` is used."""
+
+    def __init__(self, checks: Callable[[], list[Problem]], layout: Callable[[], Any],
+                 plot: Callable[[Any, Path], None]):
         from cosy_lite.eval.evaluator import fork_is_safe
 
         self._plot = plot
@@ -35,7 +39,7 @@ class ChecksAndFigure:
         if fork_is_safe():
             ctx = mp.get_context("fork")
             self._conn, child = ctx.Pipe()
-            self._proc = ctx.Process(target=_serve, args=(child, self._conn, checks, plot, figure_imports),
+            self._proc = ctx.Process(target=_serve, args=(child, self._conn, checks, layout, plot),
                                      name="checks and figure", daemon=True)
             self._proc.start()
             child.close()
@@ -78,22 +82,28 @@ class ChecksAndFigure:
         return value
 
 
-def _serve(conn, parent_end, checks: Callable[[], list[Problem]], plot: Callable[[Any, Path], None],
-           figure_imports: Callable[[], None]) -> None:
-    """The forked process: the checks, the figure's imports, then one figure if asked."""
+def _serve(conn, parent_end, checks: Callable[[], list[Problem]], layout: Callable[[], Any],
+           plot: Callable[[Any, Path], None]) -> None:
+    """The forked process: the checks, the figure's axes, then one figure if asked."""
     parent_end.close()  # (its copy from the fork: else this end never sees the parent close it)
     try:
         conn.send(("checks", checks()))
     except Exception as e:  # noqa: BLE001 - reported by the parent
         conn.send(("error", f"{type(e).__name__}: {e}"))
         return
-    figure_imports()
+    try:
+        figure = layout()
+    except Exception:  # noqa: BLE001 - drawn whole at the end instead, where any error is reported
+        figure = None
     try:
         result, png = conn.recv()
     except EOFError:  # no figure wanted (bad input, or the evaluation failed)
         return
     try:
-        plot(result, png)
+        if figure is not None:
+            figure.save(result, png)
+        else:
+            plot(result, png)
     except Exception as e:  # noqa: BLE001 - reported by the parent
         conn.send(("error", f"{type(e).__name__}: {e}"))
         return

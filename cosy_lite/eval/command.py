@@ -92,35 +92,79 @@ def format_table(result) -> str:
     return "\n".join(lines)
 
 
-def _import_figure_modules() -> None:
-    import matplotlib.backends.backend_agg  # noqa: F401  (what plot_curves imports and draws with)
-    import matplotlib.figure  # noqa: F401
+class RecallFigure:
+    """Recall vs threshold: VSD (one curve per tau, vs theta), MSSD (vs fraction of diameter), MSPD
+    (vs px), in two steps: the axes, grid, labels and legend once the MSPD thresholds are known
+    (``mspd_thresholds_px``: the width scaling), then :meth:`save` of a result draws only its curves
+    and AR titles over them (the first step while the errors are computed, off the path to the scores)."""
+
+    def __init__(self, mspd_thresholds_px):
+        import numpy as np
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure  # no pyplot: no GUI state, less to import
+
+        from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_TAUS, VSD_THETAS
+
+        self.mspd_thresholds_px = np.asarray(mspd_thresholds_px, dtype=np.float64)
+        self.fig = fig = Figure(figsize=(15, 4.2))
+        self.canvas = FigureCanvasAgg(fig)
+        self.axes = axes = fig.subplots(1, 3)
+        self.vsd = [axes[0].plot([], [], marker=".", label=f"tau={tau:.2f}d")[0] for tau in VSD_TAUS]
+        self.mssd = axes[1].plot([], [], marker="o")[0]
+        self.mspd = axes[2].plot([], [], marker="o")[0]
+        axes[0].set(xlabel="theta", ylabel="recall")
+        self.legend = axes[0].legend(fontsize=6, ncol=2)
+        axes[1].set(xlabel="threshold [x diameter]")
+        axes[2].set(xlabel="threshold [px]")
+        for ax, x in zip(axes, (VSD_THETAS, MSSD_THRESHOLDS, self.mspd_thresholds_px)):
+            pad = 0.05 * (x.max() - x.min())  # (matplotlib's default margins, as when the curves set them)
+            ax.set_xlim(x.min() - pad, x.max() + pad)
+            ax.set_ylim(0, 1.02)
+            ax.grid(alpha=0.3)
+        self.suptitle = fig.suptitle(" ")
+        fig.subplots_adjust(left=0.045, right=0.99, bottom=0.12, top=0.86, wspace=0.15)  # (tight_layout: 0.05 s more)
+        over = [self.legend, *(spine for ax in axes for spine in ax.spines.values())]
+        for artist in over:  # drawn over the curves by save(), as a full draw orders them: not in the background
+            artist.set_visible(False)
+        self.canvas.draw()
+        self.background = self.canvas.copy_from_bbox(fig.bbox)
+        for artist in over:
+            artist.set_visible(True)
+
+    def save(self, result, path: Path) -> None:
+        """Draw the curves of ``result`` (an :class:`~cosy_lite.eval.evaluator.EvalResult`) and write the PNG."""
+        import numpy as np
+        from PIL import Image
+
+        from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_THETAS
+
+        s = result.scores
+        if not np.array_equal(s.mspd_thresholds_px, self.mspd_thresholds_px):
+            raise ValueError(f"the figure was laid out for MSPD thresholds {self.mspd_thresholds_px.tolist()}, "
+                             f"the result has {s.mspd_thresholds_px.tolist()}")
+        self.canvas.restore_region(self.background)
+        axes = self.axes
+        for line, recall in zip(self.vsd, s.recall_vsd):
+            line.set_data(VSD_THETAS, recall)
+        self.mssd.set_data(MSSD_THRESHOLDS, s.recall_mssd)
+        self.mspd.set_data(self.mspd_thresholds_px, s.recall_mspd)
+        for ax, lines, title in ((axes[0], self.vsd, f"VSD (AR {s.ar_vsd:.3f})"),
+                                 (axes[1], [self.mssd], f"MSSD (AR {s.ar_mssd:.3f})"),
+                                 (axes[2], [self.mspd], f"MSPD (AR {s.ar_mspd:.3f})")):
+            for artist in [*lines, *ax.spines.values()]:
+                ax.draw_artist(artist)
+            ax.set_title(title)
+            ax.draw_artist(ax.title)
+        axes[0].draw_artist(self.legend)
+        self.suptitle.set_text(f"{result.dataset}/{result.split}: AR {s.ar:.4f}")
+        self.fig.draw_artist(self.suptitle)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.asarray(self.canvas.buffer_rgba())).save(path, dpi=(self.fig.dpi, self.fig.dpi))
 
 
 def plot_curves(result, path: Path) -> None:
-    """Recall vs threshold: VSD (one curve per tau, vs theta), MSSD (vs fraction of diameter), MSPD (vs px)."""
-    from matplotlib.figure import Figure  # no pyplot: no GUI state, less to import
-
-    from cosy_lite.eval.scoring import MSSD_THRESHOLDS, VSD_TAUS, VSD_THETAS
-
-    s = result.scores
-    fig = Figure(figsize=(15, 4.2))
-    axes = fig.subplots(1, 3)
-    for i, tau in enumerate(VSD_TAUS):
-        axes[0].plot(VSD_THETAS, s.recall_vsd[i], marker=".", label=f"tau={tau:.2f}d")
-    axes[0].set(title=f"VSD (AR {s.ar_vsd:.3f})", xlabel="theta", ylabel="recall")
-    axes[0].legend(fontsize=6, ncol=2)
-    axes[1].plot(MSSD_THRESHOLDS, s.recall_mssd, marker="o")
-    axes[1].set(title=f"MSSD (AR {s.ar_mssd:.3f})", xlabel="threshold [x diameter]")
-    axes[2].plot(s.mspd_thresholds_px, s.recall_mspd, marker="o")
-    axes[2].set(title=f"MSPD (AR {s.ar_mspd:.3f})", xlabel="threshold [px]")
-    for ax in axes:
-        ax.set_ylim(0, 1.02)
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"{result.dataset}/{result.split}: AR {s.ar:.4f}")
-    fig.subplots_adjust(left=0.045, right=0.99, bottom=0.12, top=0.86, wspace=0.15)  # (tight_layout: 0.05 s more)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    """The recall curves of ``result`` (:class:`RecallFigure`) in one go."""
+    RecallFigure(result.scores.mspd_thresholds_px).save(result, path)
 
 
 def _argument_problem(args: argparse.Namespace) -> str | None:
@@ -159,8 +203,8 @@ def run(args: argparse.Namespace) -> int:
         if _accepted(problems):
             return _run_6d_detection(args, root)
         return report(problems, subject)
-    # the checks and the figure's imports run beside the evaluation's preparation (a second core)
-    side = ChecksAndFigure(partial(_input_problems, args, root, task), plot_curves, _import_figure_modules)
+    # the checks and the figure's axes run beside the evaluation (a second core)
+    side = ChecksAndFigure(partial(_input_problems, args, root, task), partial(_figure_layout, args, root), plot_curves)
     try:
         result = evaluate(root, args.results, args.split, args.name, args.max_sym_disc_step,
                           args.sym_zero_angle, args.visib_gt_min, progress=not args.no_progress,
@@ -181,6 +225,18 @@ def run(args: argparse.Namespace) -> int:
         side.close()
     print(f"wrote {out / 'scores.json'} and {out / 'recall_curves.png'}")
     return 0
+
+
+def _figure_layout(args: argparse.Namespace, root: Path) -> RecallFigure | None:
+    """The figure's axes drawn for the test images' width, when the dataset's parameters give it
+    (else the first depth image does, and the whole figure is drawn at the end)."""
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.eval.evaluator import eval_split
+    from cosy_lite.eval.scoring import MSPD_THRESHOLDS_PX
+
+    ds = BopDataset(root, args.name or "")
+    sp = ds.split_params(eval_split(ds.name, args.split))
+    return None if sp is None else RecallFigure(MSPD_THRESHOLDS_PX * (sp.im_size[0] / 640.0))
 
 
 def _input_problems(args: argparse.Namespace, root: Path, task: str) -> list:
