@@ -660,7 +660,7 @@ def load_depth(path: str | Path, depth_scale: float) -> np.ndarray:
     if d.dtype != np.uint16:
         raise BopFormatError(path, "bit depth", f"{d.dtype} pixels: expected uint16 (BOP depth is 16-bit, "
                              "value * depth_scale = mm); an 8-bit image loses the depth")
-    return d.astype(np.float32) * np.float32(depth_scale * MM)
+    return np.multiply(d, np.float32(depth_scale * MM), dtype=np.float32)  # (one pass; uint16 -> float32 is exact)
 
 
 def depth_to_png_units(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
