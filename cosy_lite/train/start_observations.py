@@ -197,13 +197,21 @@ def observations_by_scene(instances: PoseDataset, parts: Sequence[PoseDataset], 
     together) and kept in its own file of ``cache``, named by ``key`` (the settings that decide the
     observations), the scene and the fingerprint of its instances: a split that gains scenes describes
     only those, and any other change to a scene describes it again. The parts are assembled from the
-    scenes' files in two passes (counts, then rows), so the memory holds each part once."""
+    scenes' files in two passes (which rows, then the rows), so the memory holds each part once."""
     scenes = {}
     for scene_id in sorted({s for s, _ in instances.image_keys()}):
         sub = instances.select_scenes({scene_id})
         scenes[scene_id] = (sub, cache / f"start_observations_scene{scene_id:06d}_"
                                           f"{cache_key(*key, scene_id, sub.fingerprint())}.npz")
-    missing = [s for s, (_, path) in scenes.items() if StartObservations.load(path) is None]
+    selected: dict[int, list[np.ndarray]] = {}  # scene -> per part: the rows of the scene's file it takes
+    missing = []
+    for scene_id, (sub, path) in scenes.items():  # first pass: what each cached scene gives each part
+        cached = StartObservations.load(path)
+        if cached is None:
+            missing.append(scene_id)
+        else:
+            selected[scene_id] = _rows_of_parts(sub.index[cached.items.numpy()], parts)
+        del cached
     if missing:
         todo = instances.select_scenes(set(missing))
         obs = observe_all(todo, templates, symmetries, desc=f"{desc} ({len(missing)} of {len(scenes)} scenes)",
@@ -215,21 +223,17 @@ def observations_by_scene(instances: PoseDataset, parts: Sequence[PoseDataset], 
             picked = _take(obs, torch.from_numpy(np.nonzero(mine)[0]))
             picked.items = torch.from_numpy(np.searchsorted(sub.index, rows[mine]))  # the item in the scene
             picked.save(path)
+            selected[scene_id] = _rows_of_parts(rows[mine], parts)
         del obs
-    selected: list[list[np.ndarray]] = [[] for _ in parts]  # per part, per scene: the rows of the scene's file
-    for sub, path in scenes.values():
-        rows = sub.index[_load_items(path)]
-        for k, part in enumerate(parts):
-            selected[k].append(np.nonzero(np.isin(rows, part.index))[0])
-    out = [_empty(templates.n_rotations, sum(len(r) for r in sel)) for sel in selected]
+    out = [_empty(templates.n_rotations, sum(len(selected[s][k]) for s in scenes)) for k in range(len(parts))]
     start = [0] * len(parts)
-    for j, (sub, path) in enumerate(scenes.values()):
+    for scene_id, (sub, path) in scenes.items():  # second pass: the rows, into each part's tensors
         scene = StartObservations.load(path)
         if scene is None:
             raise RuntimeError(f"{path}: start observations removed or damaged while they were read")
         rows = sub.index[scene.items.numpy()]
         for k, part in enumerate(parts):
-            take = selected[k][j]
+            take = selected[scene_id][k]
             end = start[k] + len(take)
             for f in FIELDS[:-1]:
                 getattr(out[k], f)[start[k]:end] = getattr(scene, f)[torch.from_numpy(take)]
@@ -242,7 +246,6 @@ def _take(obs: StartObservations, rows: Tensor) -> StartObservations:
     return StartObservations(*(getattr(obs, f)[rows] for f in FIELDS))
 
 
-def _load_items(path: Path) -> np.ndarray:
-    """The ``items`` field alone (an ``.npz`` member is read on its own)."""
-    with np.load(path, allow_pickle=False) as f:
-        return f["items"]
+def _rows_of_parts(rows: np.ndarray, parts: Sequence[PoseDataset]) -> list[np.ndarray]:
+    """Per part, the positions in ``rows`` (instance-table rows, in a scene file's order) of its items."""
+    return [np.nonzero(np.isin(rows, part.index))[0] for part in parts]
