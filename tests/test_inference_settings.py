@@ -196,3 +196,17 @@ def test_refiner_depth_drift_is_read_checked_and_indexed_by_iterations():
         with pytest.raises(ConfigError) as e:
             inference_config(None, "", None, [f"refiner_depth_drift={bad}"])
         assert e.value.field == "refiner_depth_drift"
+
+
+def test_refiner_fine_iterations_are_read_and_checked():
+    cfg = inference_config(None, "", None, ["refiner_fine_iterations=[2, 4]", "refiner_fine_resolution=[240, 320]"])
+    assert (cfg.refiner_fine_iterations, cfg.refiner_fine_resolution) == ([2, 4], [240, 320])
+    off = inference_config(cfg.to_dict(), "pipeline.json", None, ["refiner_fine_iterations=[]"])
+    assert off.refiner_fine_iterations == []  # off with the resolution left as it was
+    for bad, field in (("refiner_fine_resolution=[250, 320]", "refiner_fine_resolution"),
+                       ("refiner_fine_resolution=[240]", "refiner_fine_resolution"),
+                       ("refiner_fine_iterations=[0]", "refiner_fine_iterations"),
+                       ("refiner_fine_iterations=[2]", "refiner_fine_resolution")):  # no crop size
+        with pytest.raises(ConfigError) as e:
+            inference_config(None, "", None, [bad])
+        assert e.value.field == field, bad

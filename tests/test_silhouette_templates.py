@@ -386,3 +386,60 @@ def test_templates_cache_is_read_back_and_a_damaged_file_is_rendered_again(scene
                                   model_keys=keys)
     with pytest.warns(RuntimeWarning, match="template cache unreadable"):
         assert np.array_equal(damaged.templates(1).grids, want.grids)
+
+
+def test_fine_refiner_iterations_run_on_larger_crops_keep_their_depth_and_match_onnx(scene, tmp_path):
+    """refiner_fine_iterations: those iterations see crops of refiner_fine_resolution (the others the
+    network's own size), leave the depth of their input pose as it was, and the onnxruntime refiner
+    (exported at the network's size, run at both) gives the torch poses."""
+    pytest.importorskip("onnxruntime")
+    from cosy_lite.export.onnx_export import export_pose_net
+    from cosy_lite.inference.onnx_runtime import OnnxPoseNet
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
+    from cosy_lite.nets.render_and_compare import FineCrops, iterate_poses
+
+    fine = (192, 256)
+    torch.manual_seed(0)
+    net = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
+    export_pose_net(net, tmp_path / "refiner.onnx", "refiner", CROP, [1, 2], config={"arch": "flow"})
+    onnx_net = OnnxPoseNet(tmp_path / "refiner.onnx", threads=1)
+    sizes: list[tuple[int, int]] = []
+    run = onnx_net.run
+    onnx_net.run = lambda x: (sizes.append(tuple(x.shape[2:])), run(x))[1]  # type: ignore[method-assign]
+    image, det = _image(scene), _detections(scene)
+    settings = dict(refiner_fine_iterations=[2], refiner_fine_resolution=list(fine))
+    a = _predictor(scene, PoseModel(net, "refiner", CROP, [1, 2], output="flow"), 3, 1, **settings).predict(
+        image, K, detections=det)
+    b = _predictor(scene, PoseModel(onnx_net, "refiner", CROP, [1, 2], output="flow"), 3, 1, **settings).predict(
+        image, K, detections=det)
+    assert sizes == [CROP, fine, CROP]  # one network call per iteration (4 crops in a batch)
+    assert bool(a.valid.all()) and bool(b.valid.all())
+    np.testing.assert_allclose(a.TCO.numpy(), b.TCO.numpy(), atol=1e-2)  # (an untrained net, as above)
+    # the engine itself: the fine iteration keeps the depth, and is not the iteration at the network's size
+    p = _predictor(scene, PoseModel(net, "refiner", CROP, [1, 2], output="flow"), 0, 1)
+    start = p.predict(image, K, detections=det).TCO.float()
+    args = (torch.from_numpy(image).permute(2, 0, 1)[None].float().div(255).expand(4, -1, -1, -1).contiguous(),
+            torch.from_numpy(K).float().expand(4, 3, 3), start, scene["ids"], p.objects.points[p.objects.index(scene["ids"])],
+            scene["renderer"], 2, CROP)
+    with torch.no_grad():
+        plain = iterate_poses(net, *args, output="flow")
+        with_fine = iterate_poses(net, *args, output="flow", fine=FineCrops(fine, frozenset({2})))
+    torch.testing.assert_close(with_fine[0], plain[0])  # iteration 1 at the network's size, as before
+    torch.testing.assert_close(with_fine[1][:, 2, 3], with_fine[0][:, 2, 3])  # the depth kept
+    assert float((with_fine[1][:, :3, :3] - plain[1][:, :3, :3]).abs().max()) > 1e-4  # another crop, another update
+    assert float((plain[1][:, 2, 3] - plain[0][:, 2, 3]).abs().max()) > 1e-5  # (which would have moved the depth)
+
+
+def test_keep_depth_moves_the_object_along_its_line_of_sight_only():
+    from cosy_lite.nets.render_and_compare import keep_depth
+
+    T_in = torch.eye(4).repeat(3, 1, 1)
+    T_in[:, :3, 3] = torch.tensor([[0.1, -0.05, 0.8], [0.0, 0.02, 0.5], [0.0, 0.0, 0.6]])
+    T_out = T_in.clone()
+    T_out[:, :3, :3] = torch.from_numpy(random_rotations(1, seed=2)[0]).float()
+    T_out[:, :3, 3] = torch.tensor([[0.12, -0.04, 0.9], [0.01, 0.03, 0.4], [0.0, 0.0, -0.1]])
+    kept = keep_depth(T_in, T_out)
+    torch.testing.assert_close(kept[:2, 2, 3], T_in[:2, 2, 3])
+    torch.testing.assert_close(kept[:2, :2, 3] / kept[:2, 2:3, 3], T_out[:2, :2, 3] / T_out[:2, 2:3, 3])  # same pixel
+    torch.testing.assert_close(kept[:, :3, :3], T_out[:, :3, :3])
+    torch.testing.assert_close(kept[2], T_out[2])  # behind the camera: left for the validity check

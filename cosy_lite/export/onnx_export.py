@@ -80,8 +80,13 @@ def export_pose_net(net: nn.Module, path: str | Path, kind: str, crop_resolution
     h, w = (int(v) for v in crop_resolution)
     module = copy.deepcopy(net).float().cpu().eval()
     x = torch.rand(CHECK_BATCH, POSE_INPUT_CHANNELS, h, w, generator=torch.Generator().manual_seed(seed))
+    # A flow refiner is fully convolutional: its crops may be larger than it was trained on
+    # (InferenceConfig.refiner_fine_iterations), so its graph takes any height and width.
+    flow = getattr(net, "output", "delta") == "flow"
+    dynamic = ({POSE_INPUT: {0: "batch", 2: "height", 3: "width"}, POSE_OUTPUT: {0: "batch", 2: "cells_y", 3: "cells_x"}}
+               if flow else {POSE_INPUT: {0: "batch"}, POSE_OUTPUT: {0: "batch"}})
     _legacy_export(module, (x,), path, opset=opset, input_names=[POSE_INPUT], output_names=[POSE_OUTPUT],
-                   dynamic_axes={POSE_INPUT: {0: "batch"}, POSE_OUTPUT: {0: "batch"}})
+                   dynamic_axes=dynamic)
     entry = ModelEntry(file=path.name, kind=kind, obj_ids=sorted(int(i) for i in obj_ids), input_name=POSE_INPUT,
                        input_shape=["batch", POSE_INPUT_CHANNELS, h, w], crop_resolution=[h, w], opset=opset,
                        source=str(source))

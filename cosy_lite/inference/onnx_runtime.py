@@ -141,7 +141,9 @@ class OnnxPoseNet:
                                  "expected 1 and 1 (images -> delta)")
         shape = list(inputs[0].shape)
         h, w = self.crop_resolution
-        if len(shape) != 4 or shape[1] != POSE_INPUT_CHANNELS or shape[2:] != [h, w]:
+        # a flow refiner's graph takes any crop size (symbolic height and width); other graphs only their own
+        self.any_size = len(shape) == 4 and all(isinstance(v, str) for v in shape[2:])
+        if len(shape) != 4 or shape[1] != POSE_INPUT_CHANNELS or not (self.any_size or shape[2:] == [h, w]):
             raise OnnxModelError(self.path, f"input {inputs[0].name} shape", f"{shape}, expected "
                                  f"[batch, {POSE_INPUT_CHANNELS}, {h}, {w}] (6 channels: crop + rendering; "
                                  f"metadata crop_resolution {h}x{w})")
@@ -157,9 +159,11 @@ class OnnxPoseNet:
     def run(self, images: np.ndarray) -> np.ndarray:
         """``images [B,6,h,w]`` float32 in [0, 1] -> ``delta [B,9]`` (or a flow refiner's ``[B,3 or 4,h/8,w/8]``) float32."""
         x = np.ascontiguousarray(images, dtype=np.float32)
-        if x.ndim != 4 or x.shape[1:] != (POSE_INPUT_CHANNELS, *self.crop_resolution):
-            raise ValueError(f"{self.path.name}: images must be [B,{POSE_INPUT_CHANNELS},{self.crop_resolution[0]},"
-                             f"{self.crop_resolution[1]}], got {x.shape}")
+        size_ok = (x.ndim == 4 and x.shape[2] % 16 == 0 and x.shape[3] % 16 == 0 if self.any_size
+                   else x.shape[2:] == self.crop_resolution)
+        if x.ndim != 4 or x.shape[1] != POSE_INPUT_CHANNELS or not size_ok:
+            size = "H,W] (H and W multiples of 16)" if self.any_size else f"{self.crop_resolution[0]},{self.crop_resolution[1]}]"
+            raise ValueError(f"{self.path.name}: images must be [B,{POSE_INPUT_CHANNELS},{size}, got {x.shape}")
         return self.session.run(None, {self.input_name: x})[0]
 
     def __call__(self, images: Any) -> Any:

@@ -61,7 +61,7 @@ from cosy_lite.nets.appearance_templates import AppearanceTemplates
 # has rendered crashes the process.
 from cosy_lite.nets.detector import detect
 from cosy_lite.nets.initial_pose import initial_pose_from_boxes
-from cosy_lite.nets.render_and_compare import iterate_poses, refine_and_score
+from cosy_lite.nets.render_and_compare import FineCrops, iterate_poses, refine_and_score
 from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
 from cosy_lite.weights.loaders import PoseModel, load_detector, load_pose_model
 
@@ -299,6 +299,13 @@ class Predictor:
             raise OnnxModelError(onnx.manifest.path, "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids",
                                  str(e)) from None
         config = dataclasses.replace(with_refiner(config, onnx.refiner is not None), precision="fp32")
+        if (onnx.refiner is not None and config.refiner_fine_iterations
+                and not getattr(onnx.refiner.net, "any_size", False)):
+            raise OnnxModelError(onnx.refiner.path or onnx.manifest.path, "input shape",
+                                 f"{list(onnx.refiner.crop_resolution)} only: "
+                                 f"refiner_fine_iterations {config.refiner_fine_iterations} run it on "
+                                 f"{config.refiner_fine_resolution} crops; export the refiner again (cosy-lite export) "
+                                 "or --set refiner_fine_iterations=[]")
         objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(onnx.coarse, onnx.refiner))
         templates = start_templates(config.start, meshes, objects, renderer, templates_cache)
@@ -469,8 +476,10 @@ class Predictor:
         for role, model, n_iterations in steps:
             net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
             if n_iterations:
+                fine = self._fine_crops() if role == "refiner" else None
                 TCO = iterate_poses(net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
-                                    self.config.batch_size, model.output)[-1]
+                                    self.config.batch_size, model.output, fine=fine,
+                                    first_iteration=1 + self.config.n_refiner_iterations - n_iterations)[-1]
             if role == "coarse":
                 TCO_coarse = TCO
         drift = self.config.depth_drift(self.config.n_refiner_iterations if self.refiner is not None else 0)
@@ -487,6 +496,14 @@ class Predictor:
             hypotheses[:, 0] = TCO
             hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
+
+    def _fine_crops(self) -> FineCrops | None:
+        """The refiner iterations run on larger crops (InferenceConfig.refiner_fine_iterations), or None."""
+        c = self.config
+        if not c.refiner_fine_iterations:
+            return None
+        h, w = c.refiner_fine_resolution
+        return FineCrops((h, w), frozenset(c.refiner_fine_iterations))
 
     def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
                           renderer: Renderer, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:

@@ -44,6 +44,12 @@ class InferenceConfig:
     # poses of training images (``cosy-lite score-refiner --from-gt --split train_pbr``, "depth_ratio_median").
     # The refined depth is divided by the entry of the iterations run (the last entry beyond); empty: none.
     refiner_depth_drift: list[float] = field(default_factory=list)
+    # Refiner iterations (1-based) run on larger crops, [h, w] px (multiples of 16), keeping their input's
+    # depth: finer rotation and image position from a network trained on smaller crops, whose depth comes
+    # out biased on them (cosy_lite.nets.render_and_compare.FineCrops). No iterations: every iteration at the
+    # network's own crop size. (The candidates' choice iteration is never a fine one.)
+    refiner_fine_iterations: list[int] = field(default_factory=list)
+    refiner_fine_resolution: list[int] = field(default_factory=list)
     min_score: float = 0.0  # pose only detections scoring at least this (BOP19: any threshold lowers AR)
     one_per_region: bool = False  # at most one detection per image region (mask IoU > 0.5, any class)
     max_per_object: int = 0  # at most this many detections per object and image, the best scored (0: no limit)
@@ -69,6 +75,16 @@ class InferenceConfig:
         if not all(isinstance(r, (int, float)) and 0.5 <= r <= 2.0 for r in self.refiner_depth_drift):
             raise FieldValueError("refiner_depth_drift", f"{self.refiner_depth_drift!r}: expected depth ratios in "
                                   "[0.5, 2] (the refiner's median depth / GT depth per iteration, e.g. [1.006, 1.01])")
+        if not all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in self.refiner_fine_iterations):
+            raise FieldValueError("refiner_fine_iterations", f"{self.refiner_fine_iterations!r}: expected iteration "
+                                  "numbers >= 1 (e.g. [2, 4])")
+        res = self.refiner_fine_resolution
+        if res and not (len(res) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 16 and v % 16 == 0
+                                              for v in res)):
+            raise FieldValueError("refiner_fine_resolution", f"{res!r}: expected [h, w] px, multiples of 16 (e.g. [240, 320])")
+        if self.refiner_fine_iterations and not res:
+            raise FieldValueError("refiner_fine_resolution", f"refiner_fine_iterations {self.refiner_fine_iterations!r} "
+                                  "needs a crop size, e.g. [240, 320]")
         if self.n_candidates > 1 and self.start not in TEMPLATE_STARTS:
             raise FieldValueError("n_candidates", f"{self.n_candidates} needs a template start ({list(TEMPLATE_STARTS)}), "
                              f"not start = {self.start!r}")

@@ -43,6 +43,36 @@ class NetInputs:
 OUTPUTS = ("delta", "flow")
 
 
+@dataclass(frozen=True)
+class FineCrops:
+    """Refiner iterations run on larger crops than the network was trained on, keeping their input's depth.
+
+    A flow refiner trained on 144x192 crops and run on 240x320 ones sees the object 1.67x larger: its
+    stride-8 cells resolve finer rotation and image position, but its depth (the flow's scale) comes out
+    biased (bench/RESULTS.md, session 28). So a fine iteration keeps the depth of its input pose along
+    its new line of sight, and the iterations at the network's own size set the depth.
+
+    resolution: (h, w) px of the fine crops (multiples of 16); iterations: 1-based numbers of the
+    iterations run on them.
+    """
+
+    resolution: Size
+    iterations: frozenset[int]
+
+
+def keep_depth(TCO_in: Tensor, TCO_out: Tensor) -> Tensor:
+    """``TCO_out`` with its translation scaled to the depth (camera z) of ``TCO_in``: the object stays
+    on the same pixel, at the input's distance. Poses the update left invalid (z not > 0 or not
+    finite) are returned as they are, for the loop's validity check to stop."""
+    z_out = TCO_out[:, 2, 3]
+    ok = torch.isfinite(z_out) & (z_out > 0)
+    scale = torch.where(ok, TCO_in[:, 2, 3].to(z_out.dtype) / torch.where(ok, z_out, torch.ones_like(z_out)),
+                        torch.ones_like(z_out))
+    out = TCO_out.clone()
+    out[:, :3, 3] = out[:, :3, 3] * scale.unsqueeze(1)
+    return out
+
+
 def network_output(net: object) -> str:
     """``"flow"`` for a flow network (its class says ``output = "flow"``), else ``"delta"``."""
     return getattr(net, "output", "delta")
@@ -87,9 +117,11 @@ def _by_batch(step: Callable[[slice], tuple[Tensor, ...]], n: int, batch_size: i
 
 def iterate_poses(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO_init: Tensor, obj_ids: Sequence[int],
                   points: Tensor, renderer: Renderer, n_iterations: int, crop_resolution: Size,
-                  batch_size: int = 32, output: str | None = None) -> list[Tensor]:
+                  batch_size: int = 32, output: str | None = None, fine: FineCrops | None = None,
+                  first_iteration: int = 1) -> list[Tensor]:
     """The render-and-compare loop: ``n_iterations`` updates from ``TCO_init [B,4,4]``; returns the
-    poses after each iteration (``n_iterations`` tensors ``[B,4,4]``). ``net`` maps [b,6,h,w] ->
+    poses after each iteration (``n_iterations`` tensors ``[B,4,4]``). ``fine``: the iterations run on
+    larger crops, their input depth kept (:class:`FineCrops`), numbered from ``first_iteration``. ``net`` maps [b,6,h,w] ->
     [b,9] (``output="delta"``) or a flow field (``"flow"``); None: what ``net`` says
     (:func:`network_output`). Training validation, the torch predictor and the onnxruntime
     predictor all iterate here.
@@ -99,13 +131,17 @@ def iterate_poses(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TC
     """
     output = output or network_output(net)
     poses, TCO = [], TCO_init
-    for _ in range(n_iterations):
+    for i in range(first_iteration, first_iteration + n_iterations):
+        is_fine = fine is not None and i in fine.iterations
+        size = fine.resolution if fine is not None and is_fine else crop_resolution
         live = valid_poses(TCO).nonzero().flatten()
         if len(live) == len(TCO):
-            TCO = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, crop_resolution, batch_size, output)
+            new = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, size, batch_size, output)
+            TCO = keep_depth(TCO, new) if is_fine else new
         elif len(live):
-            new = _iterate_once(net, images[live], K[live], TCO[live], [obj_ids[i] for i in live.tolist()],
-                                points[live], renderer, crop_resolution, batch_size, output)
+            new = _iterate_once(net, images[live], K[live], TCO[live], [obj_ids[j] for j in live.tolist()],
+                                points[live], renderer, size, batch_size, output)
+            new = keep_depth(TCO[live], new) if is_fine else new
             TCO = TCO.clone()
             TCO[live] = new.to(TCO.dtype)
         poses.append(TCO)

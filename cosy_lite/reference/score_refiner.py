@@ -15,7 +15,7 @@ import argparse
 import json
 from dataclasses import fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Sequence, cast
 
 from cosy_lite.inference.settings import InferenceConfig
 
@@ -29,10 +29,13 @@ CHUNK = 32  # instances whose full images are held in memory at once
 
 def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
                   n_iterations: int = InferenceConfig.n_refiner_iterations,
-                  split: str = "test", seed: int = 12345, progress: bool = True, from_gt: bool = False) -> dict[str, Any]:
+                  split: str = "test", seed: int = 12345, progress: bool = True, from_gt: bool = False,
+                  fine_iterations: Sequence[int] = (), fine_resolution: Sequence[int] = ()) -> dict[str, Any]:
     """``{"instances", "split", "start": {...}, "iter1": {...}, ...}``: each a dict of
     ``rot_err_deg_median``, ``trans_err_cm_median``, ``adds_recall_0.1d``, ``mssd_recall_0.1d``.
-    ``from_gt``: start AT the GT poses (the same instances): how far the refiner drifts from a perfect start."""
+    ``from_gt``: start AT the GT poses (the same instances): how far the refiner drifts from a perfect start.
+    ``fine_iterations`` / ``fine_resolution``: those iterations on larger crops, their input depth kept
+    (InferenceConfig.refiner_fine_iterations, :class:`~cosy_lite.nets.render_and_compare.FineCrops`)."""
     import torch
     from tqdm import tqdm
 
@@ -41,11 +44,15 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
     from cosy_lite.errors import CosyLiteError
     from cosy_lite.nets.initial_pose import add_pose_noise
     from cosy_lite.nets.object_table import ObjectTable
-    from cosy_lite.nets.render_and_compare import iterate_poses
+    from cosy_lite.nets.render_and_compare import FineCrops, iterate_poses
     from cosy_lite.render.renderer import GlRenderer
     from cosy_lite.train.pose_task import PoseErrors, pose_errors
     from cosy_lite.weights.loaders import load_pose_model
 
+    settings = InferenceConfig(refiner_fine_iterations=[int(i) for i in fine_iterations],
+                               refiner_fine_resolution=[int(v) for v in fine_resolution])  # (checks them)
+    fine = (FineCrops(cast("tuple[int, int]", tuple(settings.refiner_fine_resolution)),
+                      frozenset(settings.refiner_fine_iterations)) if settings.refiner_fine_iterations else None)
     ds = BopDataset(Path(dataset_root))
     model = load_pose_model(refiner, "refiner")
     obj_ids = sorted(set(model.obj_ids) & set(ds.models_info))  # the refiner's objects this dataset has
@@ -73,7 +80,7 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
             images = torch.stack([b.rgb for b in batch]).float() / 255
             K = torch.stack([b.K for b in batch]).float()
             poses = iterate_poses(model.net, images, K, start, obj, points.float(), renderer, n_iterations,
-                                  model.crop_resolution, output=model.output)
+                                  model.crop_resolution, output=model.output, fine=fine)
             for k, T in zip(keys, [start] + poses):
                 errors[k].append(pose_errors(T, gt, points, syms, mask))
             diameters.append(objects.diameters[idx])
@@ -81,6 +88,8 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
     out: dict[str, Any] = {"refiner": str(refiner), "split": split, "instances": len(rows), "seed": seed,
                            "start_noise": ({"rot_deg": 0.0, "trans_m": [0.0, 0.0, 0.0]} if from_gt else
                                            {"rot_deg": NOISE_ROT_DEG, "trans_m": list(NOISE_TRANS_M)})}
+    if fine is not None:
+        out["fine_crops"] = {"iterations": sorted(fine.iterations), "resolution": list(fine.resolution)}
     for k in keys:
         e = errors[k]
         joined = PoseErrors(*(torch.cat([getattr(x, f.name) for x in e]) for f in fields(PoseErrors)))
@@ -98,12 +107,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--out", type=Path, default=None, metavar="JSON", help="also write the numbers here")
     p.add_argument("--from-gt", action="store_true", help="start at the GT poses instead of GT + noise (the drift)")
+    p.add_argument("--fine-iterations", type=int, nargs="+", default=[], metavar="I",
+                   help="run these iterations (1-based) on larger crops, keeping their input's depth (as the "
+                        "inference setting refiner_fine_iterations); needs --fine-resolution")
+    p.add_argument("--fine-resolution", type=int, nargs=2, default=[], metavar=("H", "W"),
+                   help="crop size of the fine iterations, px (multiples of 16), e.g. 240 320")
     p.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     from cosy_lite.bop.folders import dataset_folder
-    from cosy_lite.errors import CosyLiteError
+    from cosy_lite.errors import ConfigError, CosyLiteError, FieldValueError
     from cosy_lite.render.gl import use_egl
     from cosy_lite.weights.reference_models import ReferenceModelError, reference_models
 
@@ -116,8 +130,13 @@ def run(args: argparse.Namespace) -> int:
         refiner = reference_refiner
     if args.n < 1 or args.iterations < 1:
         raise CosyLiteError(f"-n {args.n} / --iterations {args.iterations}: expected integers >= 1")
+    try:
+        InferenceConfig(refiner_fine_iterations=args.fine_iterations, refiner_fine_resolution=args.fine_resolution)
+    except FieldValueError as e:
+        raise ConfigError("--fine-iterations / --fine-resolution", e.field, e.problem) from None
     scores = score_refiner(refiner, dataset_folder(args.dataset), args.n, args.iterations, args.split, args.seed,
-                           progress=not args.no_progress, from_gt=args.from_gt)
+                           progress=not args.no_progress, from_gt=args.from_gt,
+                           fine_iterations=args.fine_iterations, fine_resolution=args.fine_resolution)
     print(f"{scores['instances']} instances of {args.split}, from GT{'' if args.from_gt else ' + noise'}:")
     print("| iteration | rot (deg) | trans (cm) | ADD-S recall 0.1 d | MSSD recall 0.1 d |\n| --- | ---: | ---: | ---: | ---: |")
     for k in ["start"] + [f"iter{i + 1}" for i in range(args.iterations)]:
