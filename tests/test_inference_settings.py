@@ -201,6 +201,9 @@ def test_refiner_depth_drift_is_read_checked_and_indexed_by_iterations():
 def test_refiner_fine_iterations_are_read_and_checked():
     cfg = inference_config(None, "", None, ["refiner_fine_iterations=[2, 4]", "refiner_fine_resolution=[240, 320]"])
     assert (cfg.refiner_fine_iterations, cfg.refiner_fine_resolution) == ([2, 4], [240, 320])
+    assert cfg.depth_iterations() == 2  # iterations 1 and 3 set the depth: its drift is that of 2
+    cfg5 = inference_config(cfg.to_dict(), "pipeline.json", None, ["n_refiner_iterations=5", "refiner_fine_iterations=[5, 7]"])
+    assert cfg5.depth_iterations() == 4  # (iteration 7 is not run)
     off = inference_config(cfg.to_dict(), "pipeline.json", None, ["refiner_fine_iterations=[]"])
     assert off.refiner_fine_iterations == []  # off with the resolution left as it was
     for bad, field in (("refiner_fine_resolution=[250, 320]", "refiner_fine_resolution"),

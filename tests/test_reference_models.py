@@ -163,10 +163,12 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
                "min_score": 0.25, "max_per_object": 2,
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
                "fuse_bn": False, "refiner_depth_drift": [1.01, 1.02],
+               "refiner_fine_iterations": [3], "refiner_fine_resolution": [192, 256],
                "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
+    needs = {"refiner_fine_iterations": {"refiner_fine_resolution": [192, 256]}}  # (not valid alone)
     for key, value in changed.items():
-        pipeline["inference"] = {"start": "templates", key: value}
+        pipeline["inference"] = {"start": "templates", key: value, **needs.get(key, {})}
         (folder / "pipeline.json").write_text(json.dumps(pipeline))
         config = pretrained_config(_command_line("--pretrained", NAME)).to_dict()
         assert config[key] == value if key != "icp_settings" else config[key].items() >= value.items(), key

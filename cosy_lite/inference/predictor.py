@@ -482,7 +482,7 @@ class Predictor:
                                     first_iteration=1 + self.config.n_refiner_iterations - n_iterations)[-1]
             if role == "coarse":
                 TCO_coarse = TCO
-        drift = self.config.depth_drift(self.config.n_refiner_iterations if self.refiner is not None else 0)
+        drift = self.config.depth_drift(self.config.depth_iterations() if self.refiner is not None else 0)
         if drift != 1.0:  # the refiner's own depth bias, measured from GT poses (InferenceConfig.refiner_depth_drift)
             TCO = TCO.clone()
             TCO[:, :3, 3] /= drift

@@ -42,7 +42,8 @@ class InferenceConfig:
     n_refiner_iterations: int = 4  # after the start (CosyPose: trained with 1, run with 4)
     # The refiner's own depth bias: its median depth / GT depth after 1, 2, ... iterations started AT the GT
     # poses of training images (``cosy-lite score-refiner --from-gt --split train_pbr``, "depth_ratio_median").
-    # The refined depth is divided by the entry of the iterations run (the last entry beyond); empty: none.
+    # The refined depth is divided by the entry of the iterations run that set the depth (depth_iterations: the
+    # fine ones keep it; the last entry beyond); empty: none.
     refiner_depth_drift: list[float] = field(default_factory=list)
     # Refiner iterations (1-based) run on larger crops, [h, w] px (multiples of 16), keeping their input's
     # depth: finer rotation and image position from a network trained on smaller crops, whose depth comes
@@ -94,6 +95,12 @@ class InferenceConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+    def depth_iterations(self) -> int:
+        """The refiner iterations run that set the depth: those not among :attr:`refiner_fine_iterations`
+        (a fine iteration keeps its input's depth, so it adds no drift)."""
+        fine = {i for i in self.refiner_fine_iterations if i <= self.n_refiner_iterations}
+        return self.n_refiner_iterations - len(fine)
 
     def depth_drift(self, n_iterations: int) -> float:
         """The refiner's depth ratio after ``n_iterations`` (:attr:`refiner_depth_drift`; 1.0: none)."""
