@@ -56,7 +56,8 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
             assert card[key], f"{kind}.json: field {key!r} is empty"
     settings = inference_config(ref.inference, ref.pipeline_path)
     assert (settings.start, settings.n_candidates, settings.candidate_choice, settings.n_refiner_iterations) == (
-        "appearance", 6, "start", 4)
+        "appearance", 6, "start", 5)
+    assert (settings.refiner_fine_iterations, settings.refiner_fine_resolution, settings.depth_iterations()) == ([5], [240, 320], 4)
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
@@ -190,7 +191,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
 
     ref = reference_models(NAME)
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
-    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 4)
+    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 5)
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
     assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]
