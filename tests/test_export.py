@@ -366,13 +366,15 @@ def test_onnx_backend_gives_the_torch_poses(tiny_synth_root, export, tmp_path, c
 
 
 def test_fine_refiner_iterations_need_a_refiner_graph_of_any_crop_size(tiny_synth_root, export):
-    """A regression refiner's graph takes its own crop size only: refiner_fine_iterations on it is an
-    error naming the file, when the pipeline is built (not in the middle of a split)."""
-    from cosy_lite.inference.predictor import Predictor
+    """A regression refiner takes its own crop size only: refiner_fine_iterations on it is an error
+    (naming the file for the ONNX graph) when the pipeline is built, not in the middle of a split."""
+    from cosy_lite.inference.predictor import Predictor, SetupError
 
     config = InferenceConfig(refiner_fine_iterations=[2], refiner_fine_resolution=[96, 128])
     with pytest.raises(OnnxModelError, match=r"refiner\.onnx.*input shape.*refiner_fine_iterations \[2\]"):
         Predictor.from_onnx(export["models"], dataset=tiny_synth_root, threads=1, config=config)
+    with pytest.raises(SetupError, match=r"refiner_fine_iterations \[2\] need a flow refiner"):  # the torch backend alike
+        Predictor.from_checkpoints(coarse=export["coarse"], refiner=export["refiner"], dataset=tiny_synth_root, config=config)
 
 
 def test_onnx_detector_feeds_the_predictor(tiny_synth_root, export):

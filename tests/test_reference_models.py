@@ -57,7 +57,8 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
     settings = inference_config(ref.inference, ref.pipeline_path)
     assert (settings.start, settings.n_candidates, settings.candidate_choice, settings.n_refiner_iterations) == (
         "appearance", 6, "start", 5)
-    assert (settings.refiner_fine_iterations, settings.refiner_fine_resolution, settings.depth_iterations()) == ([5], [240, 320], 4)
+    fine = (settings.refiner_fine_iterations, settings.refiner_fine_resolution, settings.depth_iterations())
+    assert fine == ([5], [240, 320], 4)
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():

@@ -141,6 +141,9 @@ class Predictor:
         if config.n_candidates > 1 and (refiner is None or refiner.output != "flow"):
             raise SetupError(f"n_candidates = {config.n_candidates} needs a flow refiner (net.arch=flow): its "
                              "confidence ranks the candidates")
+        if config.refiner_fine_iterations and refiner is not None and refiner.output != "flow":
+            raise SetupError(f"refiner_fine_iterations {config.refiner_fine_iterations} need a flow refiner (net.arch=flow): "
+                             "a regression refiner takes only its own crop size (or --set refiner_fine_iterations=[])")
         if refiner is None and config.n_refiner_iterations > 0:
             raise ValueError(f"n_refiner_iterations = {config.n_refiner_iterations} but no refiner model given")
         if config.precision not in AUTOCAST_DTYPES:
@@ -476,7 +479,8 @@ class Predictor:
         for role, model, n_iterations in steps:
             net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
             if n_iterations:
-                fine = self._fine_crops() if role == "refiner" else None
+                fine = (FineCrops.of(self.config.refiner_fine_iterations, self.config.refiner_fine_resolution)
+                        if role == "refiner" else None)
                 TCO = iterate_poses(net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
                                     self.config.batch_size, model.output, fine=fine,
                                     first_iteration=1 + self.config.n_refiner_iterations - n_iterations)[-1]
@@ -496,14 +500,6 @@ class Predictor:
             hypotheses[:, 0] = TCO
             hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
-
-    def _fine_crops(self) -> FineCrops | None:
-        """The refiner iterations run on larger crops (InferenceConfig.refiner_fine_iterations), or None."""
-        c = self.config
-        if not c.refiner_fine_iterations:
-            return None
-        h, w = c.refiner_fine_resolution
-        return FineCrops((h, w), frozenset(c.refiner_fine_iterations))
 
     def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
                           renderer: Renderer, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:

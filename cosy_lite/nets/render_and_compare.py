@@ -59,6 +59,15 @@ class FineCrops:
     resolution: Size
     iterations: frozenset[int]
 
+    @classmethod
+    def of(cls, iterations: Sequence[int], resolution: Sequence[int]) -> FineCrops | None:
+        """From the settings' lists (``InferenceConfig.refiner_fine_iterations`` / ``_resolution``); None
+        without iterations."""
+        if not iterations:
+            return None
+        h, w = (int(v) for v in resolution)
+        return cls((h, w), frozenset(int(i) for i in iterations))
+
 
 def keep_depth(TCO_in: Tensor, TCO_out: Tensor) -> Tensor:
     """``TCO_out`` with its translation scaled to the depth (camera z) of ``TCO_in``: the object stays

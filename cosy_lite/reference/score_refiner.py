@@ -15,7 +15,7 @@ import argparse
 import json
 from dataclasses import fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence, cast
+from typing import TYPE_CHECKING, Any, Sequence
 
 from cosy_lite.inference.settings import InferenceConfig
 
@@ -51,10 +51,12 @@ def score_refiner(refiner: str | Path, dataset_root: str | Path, n: int = 256,
 
     settings = InferenceConfig(refiner_fine_iterations=[int(i) for i in fine_iterations],
                                refiner_fine_resolution=[int(v) for v in fine_resolution])  # (checks them)
-    fine = (FineCrops(cast("tuple[int, int]", tuple(settings.refiner_fine_resolution)),
-                      frozenset(settings.refiner_fine_iterations)) if settings.refiner_fine_iterations else None)
+    fine = FineCrops.of(settings.refiner_fine_iterations, settings.refiner_fine_resolution)
     ds = BopDataset(Path(dataset_root))
     model = load_pose_model(refiner, "refiner")
+    if fine is not None and model.output != "flow":
+        raise CosyLiteError(f"{refiner}: fine iterations need a flow refiner (net.arch=flow); this one regresses its "
+                            "update from crops of its own size only")
     obj_ids = sorted(set(model.obj_ids) & set(ds.models_info))  # the refiner's objects this dataset has
     items: PoseDataset | list[PoseSample] = (
         PoseDataset(ds, split, obj_ids=obj_ids or None, min_visib_fract=0.1) if obj_ids else []
