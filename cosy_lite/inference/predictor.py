@@ -109,6 +109,18 @@ def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer:
     return scorer.net
 
 
+def check_fine_crops(config: InferenceConfig, refiner: PoseModel | None) -> None:
+    """SetupError naming the file when ``refiner_fine_iterations`` ask for crops the refiner cannot take:
+    larger crops need a network of any input size, a flow refiner (torch) or its graph exported so
+    (onnxruntime: symbolic height and width, ``OnnxPoseNet.any_size``)."""
+    if (config.refiner_fine_iterations and refiner is not None
+            and not (refiner.output == "flow" and getattr(refiner.net, "any_size", True))):
+        raise SetupError(f"{refiner.path or 'the refiner'}: refiner_fine_iterations {config.refiner_fine_iterations} "
+                         f"run it on {config.refiner_fine_resolution} crops, but it takes only its own "
+                         f"{list(refiner.crop_resolution)} (a regression refiner, or an ONNX graph exported before "
+                         "2026-12-06: export it again); or --set refiner_fine_iterations=[]")
+
+
 class Predictor:
     """Detector -> coarse -> refiner -> optional depth ICP, for single images.
 
@@ -141,9 +153,7 @@ class Predictor:
         if config.n_candidates > 1 and (refiner is None or refiner.output != "flow"):
             raise SetupError(f"n_candidates = {config.n_candidates} needs a flow refiner (net.arch=flow): its "
                              "confidence ranks the candidates")
-        if config.refiner_fine_iterations and refiner is not None and refiner.output != "flow":
-            raise SetupError(f"refiner_fine_iterations {config.refiner_fine_iterations} need a flow refiner (net.arch=flow): "
-                             "a regression refiner takes only its own crop size (or --set refiner_fine_iterations=[])")
+        check_fine_crops(config, refiner)
         if refiner is None and config.n_refiner_iterations > 0:
             raise ValueError(f"n_refiner_iterations = {config.n_refiner_iterations} but no refiner model given")
         if config.precision not in AUTOCAST_DTYPES:
@@ -302,13 +312,7 @@ class Predictor:
             raise OnnxModelError(onnx.manifest.path, "argument obj_ids" if obj_ids else f"models.{first_name}.obj_ids",
                                  str(e)) from None
         config = dataclasses.replace(with_refiner(config, onnx.refiner is not None), precision="fp32")
-        if (onnx.refiner is not None and config.refiner_fine_iterations
-                and not getattr(onnx.refiner.net, "any_size", False)):
-            raise OnnxModelError(onnx.refiner.path or onnx.manifest.path, "input shape",
-                                 f"{list(onnx.refiner.crop_resolution)} only: "
-                                 f"refiner_fine_iterations {config.refiner_fine_iterations} run it on "
-                                 f"{config.refiner_fine_resolution} crops; export the refiner again (cosy-lite export) "
-                                 "or --set refiner_fine_iterations=[]")
+        check_fine_crops(config, onnx.refiner)  # (before the templates are rendered)
         objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(onnx.coarse, onnx.refiner))
         templates = start_templates(config.start, meshes, objects, renderer, templates_cache)

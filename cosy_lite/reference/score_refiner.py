@@ -132,13 +132,12 @@ def run(args: argparse.Namespace) -> int:
         refiner = reference_refiner
     if args.n < 1 or args.iterations < 1:
         raise CosyLiteError(f"-n {args.n} / --iterations {args.iterations}: expected integers >= 1")
-    try:
-        InferenceConfig(refiner_fine_iterations=args.fine_iterations, refiner_fine_resolution=args.fine_resolution)
+    try:  # (score_refiner checks the fine crops first, before loading anything)
+        scores = score_refiner(refiner, dataset_folder(args.dataset), args.n, args.iterations, args.split, args.seed,
+                               progress=not args.no_progress, from_gt=args.from_gt,
+                               fine_iterations=args.fine_iterations, fine_resolution=args.fine_resolution)
     except FieldValueError as e:
         raise ConfigError("--fine-iterations / --fine-resolution", e.field, e.problem) from None
-    scores = score_refiner(refiner, dataset_folder(args.dataset), args.n, args.iterations, args.split, args.seed,
-                           progress=not args.no_progress, from_gt=args.from_gt,
-                           fine_iterations=args.fine_iterations, fine_resolution=args.fine_resolution)
     print(f"{scores['instances']} instances of {args.split}, from GT{'' if args.from_gt else ' + noise'}:")
     print("| iteration | rot (deg) | trans (cm) | ADD-S recall 0.1 d | MSSD recall 0.1 d |\n| --- | ---: | ---: | ---: | ---: |")
     for k in ["start"] + [f"iter{i + 1}" for i in range(args.iterations)]:
