@@ -375,3 +375,41 @@ def test_the_refiner_depth_drift_divides_the_refined_depth_only(tiny_synth_root,
     coarse_only = run("coarse", n_refiner_iterations=0)
     for a, b in zip(coarse_only, no_refiner):
         np.testing.assert_allclose(b.TCO, a.TCO, atol=1e-6)
+
+
+def test_depth_from_mask_moves_the_depth_along_the_line_of_sight_towards_the_gt(tiny_synth_root, ckpts, tmp_path):
+    """InferenceConfig.depth_from_mask with the GT masks (loaded for it): the same rotations and lines of
+    sight as without, depths nearer the GT on average (the start's box depth errs and the untrained refiner
+    keeps it; its rotations err too, so the gain is smaller than at a right rotation: test_mask_depth.py);
+    boxes only: a warning, and the refiner's depth kept."""
+    ds = BopDataset(tiny_synth_root)
+    kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds)
+
+    def run(name: str, **settings):
+        s = run_on_split(Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1, **settings)),
+                         ds, tmp_path / name, method=name, detections="oracle", progress=False)
+        return read_results_csv(s.csv_path)
+
+    plain, fitted = run("plain"), run("fitted", depth_from_mask=True)
+    assert len(plain) == len(fitted) > 0
+    errors = {"plain": [], "fitted": []}
+    for a, b in zip(plain, fitted):
+        assert (a.scene_id, a.im_id, a.obj_id) == (b.scene_id, b.im_id, b.obj_id)
+        np.testing.assert_allclose(b.TCO[:3, :3], a.TCO[:3, :3], atol=1e-6)
+        np.testing.assert_allclose(np.cross(a.TCO[:3, 3], b.TCO[:3, 3]) / np.linalg.norm(a.TCO[:3, 3]) ** 2, 0.0, atol=1e-6)
+        gt = [g for g in ds.image("test", a.scene_id, a.im_id).gt if g.obj_id == a.obj_id]
+        z_gt = min(g.TCO[2, 3] for g in gt) if len(gt) == 1 else None
+        if z_gt is not None:
+            errors["plain"].append(abs(a.TCO[2, 3] / z_gt - 1))
+            errors["fitted"].append(abs(b.TCO[2, 3] / z_gt - 1))
+    assert len(errors["plain"]) >= 5
+    assert np.mean(errors["fitted"]) < 0.9 * np.mean(errors["plain"]), errors
+    assert sum(abs(a.TCO[2, 3] - b.TCO[2, 3]) > 1e-6 for a, b in zip(plain, fitted)) >= len(plain) // 3
+    rgb = np.asarray(ds.load_rgb(ds.image("test", plain[0].scene_id, plain[0].im_id)))
+    boxes_only = Detections(torch.tensor([[100.0, 100.0, 180.0, 170.0]]), torch.tensor([OBJ_IDS[0]]), torch.tensor([0.9]))
+    p = Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1, depth_from_mask=True))
+    with pytest.warns(RuntimeWarning, match="depth_from_mask .* boxes only"):
+        est = p.predict(rgb, ds.image("test", plain[0].scene_id, plain[0].im_id).camera.K, detections=boxes_only)
+    plain_est = Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1)).predict(
+        rgb, ds.image("test", plain[0].scene_id, plain[0].im_id).camera.K, detections=boxes_only)
+    np.testing.assert_allclose(est.TCO.numpy(), plain_est.TCO.numpy(), atol=1e-9)

@@ -43,6 +43,7 @@ from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_box
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
 from cosy_lite.inference.detection_filter import DetectionFilter
+from cosy_lite.inference.mask_depth import fit_depth_to_masks
 from cosy_lite.inference.object_meshes import (
     SetupError,
     estimated_obj_ids,
@@ -417,8 +418,12 @@ class Predictor:
             det = dataclasses.replace(det, masks=torch.from_numpy(box_masks(det.boxes, (H, W))))
         icp = self.config.icp_settings
         verify = self.config.icp and depth is not None and icp.verify_candidates and icp.check_agreement
+        if self.config.depth_from_mask and given_masks is None:
+            warnings.warn(f"Predictor: depth_from_mask fits the depth to the detections' masks, but these {len(det)} "
+                          "detections are boxes only: the refiner's depth is kept", RuntimeWarning, stacklevel=2)
+        depth_masks = given_masks if self.config.depth_from_mask and self.refiner is not None else None
         with flush_denormals():
-            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock, verify)
+            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock, verify, depth_masks)
         icp_results, TCO_before_icp = None, None
         if self.config.icp and depth is not None:
             TCO_before_icp = TCO
@@ -437,13 +442,14 @@ class Predictor:
                              TCO_coarse, self._timings(clock, t_start, one_time), icp_results, TCO_before_icp,
                              None if given_masks is None else given_masks.clone())
 
-    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock,
-               verify: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
+    def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock, verify: bool = False,
+               depth_masks: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
         """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, and with several template
         candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose first, then the
         others after their one refiner iteration, or with ``candidate_choice="start"`` as the start
         stage made them (None with one candidate). ``verify``: ICP will verify the hypotheses
-        (with ``candidate_choice="start"`` they are kept only then)."""
+        (with ``candidate_choice="start"`` they are kept only then). ``depth_masks [N,H,W]``: the refined
+        depth fitted to these masks (``depth_from_mask``, :func:`~cosy_lite.inference.mask_depth.fit_depth_to_masks`)."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         N = len(det)
@@ -494,6 +500,8 @@ class Predictor:
         if drift != 1.0:  # the refiner's own depth bias, measured from GT poses (InferenceConfig.refiner_depth_drift)
             TCO = TCO.clone()
             TCO[:, :3, 3] /= drift
+        if depth_masks is not None:
+            TCO = fit_depth_to_masks(TCO, K, depth_masks, ids, renderer)
         clock.sync()
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
