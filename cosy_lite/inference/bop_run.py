@@ -275,8 +275,7 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
     split_folder = split_dir.name if split_dir is not None else split
     image_keys, choose = _image_targets(dataset, task, predictor, detector_path)
     keys = image_keys[:limit_images] if limit_images is not None else image_keys
-    with_masks = predictor.config.icp or predictor.needs_masks or predictor.config.depth_from_mask
-    source = detection_source(detections, dataset, with_masks=with_masks)
+    source = detection_source(detections, dataset, with_masks=predictor.reads_masks)
     if source is None and predictor.detector is None:
         raise SetupError("no detections: load a detector checkpoint or give detections ('oracle' or a JSON file)")
     estimates: list[PoseEstimate] = []

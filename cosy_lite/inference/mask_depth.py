@@ -53,7 +53,7 @@ def depth_scale(silhouette: np.ndarray, mask: np.ndarray, centre: tuple[float, f
     costs = np.empty(len(SCALES))
     for j, k in enumerate(SCALES):
         s = 1.0 / float(k)
-        warp = np.float32([[s, 0, (1 - s) * (cx - x0)], [0, s, (1 - s) * (cy - y0)]])
+        warp = np.array([[s, 0, (1 - s) * (cx - x0)], [0, s, (1 - s) * (cy - y0)]], dtype=np.float32)
         scaled = cv2.warpAffine(sil, warp, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR) > 0.5
         costs[j] = (inside & ~scaled).sum() + outside_window + OUTSIDE_WEIGHT * (scaled & ~inside).sum()
     # ties (a pixel grid cannot tell 1 % apart on a small object): the one nearest the refined depth

@@ -335,6 +335,12 @@ class Predictor:
         """True when :meth:`predict` needs detection masks (``start="templates"``)."""
         return self.start in TEMPLATE_STARTS
 
+    @property
+    def reads_masks(self) -> bool:
+        """True when :meth:`predict` reads detection masks given with the detections: template starts, ICP,
+        ``depth_from_mask``."""
+        return self.needs_masks or self.config.icp or self.config.depth_from_mask
+
     def _template_candidates(self, det: Detections, K: np.ndarray, rgb: np.ndarray) -> np.ndarray:
         """``[N,k,4,4]`` float64: the ``n_candidates`` best template poses of each detection (ranked by
         appearance too with ``start="appearance"``: the image ``rgb`` inside each mask)."""
