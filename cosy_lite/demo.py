@@ -171,14 +171,15 @@ def infer_runs(cfg: DemoConfig) -> list[InferRun]:
     else:
         start = ("coarse" if cfg.start == "coarse" else f"templates (top {train_candidates(cfg)})") + " + refiner"
         masks = "GT boxes + masks" if cfg.start in TEMPLATE_STARTS else "GT boxes"
-    # each ICP run also writes its poses before ICP: the RGB-only results at no extra cost
+    # each ICP run also writes its poses before ICP: the RGB-only results at no extra cost; the GT masks are exact,
+    # so the refined poses are checked and their depth fitted against them (--exact-masks)
     return [
         InferRun("cosyliteicp", f"detector + {start} + depth ICP",
                  det + ["--icp", "--vis", str(cfg.vis), "--also-before-icp", "cosylite"],
                  ("cosylite", f"detector + {start} (RGB)")),
-        InferRun("cosyliteoracleicp", f"{masks} (oracle) + {start} + depth ICP",
-                 ["--detections", "oracle", "--icp", "--also-before-icp", "cosyliteoracle"],
-                 ("cosyliteoracle", f"{masks} (oracle) + {start} (RGB)")),
+        InferRun("cosyliteoracleicp", f"{masks} (oracle, exact) + {start} + depth ICP",
+                 ["--detections", "oracle", "--exact-masks", "--icp", "--also-before-icp", "cosyliteoracle"],
+                 ("cosyliteoracle", f"{masks} (oracle, exact) + {start} (RGB)")),
     ]
 
 

@@ -169,6 +169,15 @@ def test_infer_py_bad_number(tmp_path, capsys, args, words):
     _one_error(capsys.readouterr().err, words)
 
 
+def test_exact_masks_are_refused_for_the_detectors_masks(tmp_path, capsys):
+    """--exact-masks without --detections: the detector's masks are not exact (the settings lower their AR)."""
+    import infer
+
+    rc = infer.main(["--dataset", str(tmp_path), "--coarse", "c.pt", "--exact-masks"])
+    assert rc == 2
+    _one_error(capsys.readouterr().err, "--exact-masks: the detector's masks are not exact")
+
+
 def test_infer_py_missing_dataset(tmp_path, capsys):
     import infer
 

@@ -197,6 +197,7 @@ def test_with_reference_models_inference_uses_them_and_each_network_gets_a_short
     for cmd in infers:
         assert cmd[cmd.index("--pretrained") + 1] == "ycbvsynth"
         assert not {"--coarse", "--refiner", "--detector", "--start"} & set(cmd)  # the set's own settings
+        assert ("--exact-masks" in cmd) == ("oracle" in cmd)  # GT masks are exact; the detector's are not
     recorded.clear()
     monkeypatch.undo()
     monkeypatch.setattr(demo, "_run", lambda cmd, what, env=None: recorded.append(cmd))

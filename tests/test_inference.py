@@ -380,7 +380,7 @@ def test_the_refiner_depth_drift_divides_the_refined_depth_only(tiny_synth_root,
 def test_depth_from_mask_moves_the_depth_along_the_line_of_sight_towards_the_gt(tiny_synth_root, ckpts, tmp_path):
     """InferenceConfig.depth_from_mask with the GT masks (loaded for it): the same rotations and lines of
     sight as without, depths nearer the GT on average (the start's box depth errs and the untrained refiner
-    keeps it; its rotations err too, so the gain is smaller than at a right rotation: test_mask_depth.py);
+    keeps it; its rotations err too, so the gain is smaller than at a right rotation: test_mask_fit.py);
     boxes only: a warning, and the refiner's depth kept."""
     ds = BopDataset(tiny_synth_root)
     kw = dict(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds)
@@ -413,3 +413,36 @@ def test_depth_from_mask_moves_the_depth_along_the_line_of_sight_towards_the_gt(
     plain_est = Predictor.from_checkpoints(**kw, config=InferenceConfig(n_refiner_iterations=1)).predict(
         rgb, ds.image("test", plain[0].scene_id, plain[0].im_id).camera.K, detections=boxes_only)
     np.testing.assert_allclose(est.TCO.numpy(), plain_est.TCO.numpy(), atol=1e-9)
+
+
+def test_the_silhouette_guard_keeps_an_iteration_with_its_own_depth_drift(tiny_synth_root, ckpts):
+    """Predictor._refined_poses with silhouette_guard: given the refiner's iterations [GT, GT turned 40 deg]
+    and the GT masks, the objects whose first iteration fits its mask clearly better keep it, divided by the
+    drift after 1 iteration; the others keep the last, divided by the drift after 2; without the guard all keep
+    the last."""
+    from cosy_lite.inference.bop_run import detection_source
+
+    ds = BopDataset(tiny_synth_root)
+    key = ds.test_image_targets()[0]
+    rec = ds.image("test", key.scene_id, key.im_id)
+    det = detection_source("oracle", ds, with_masks=True)(rec)
+    gt = {g.obj_id: g.TCO for g in rec.gt}
+    ids = [int(i) for i in det.obj_ids if int(i) in gt]
+    keep = [k for k, i in enumerate(det.obj_ids.tolist()) if i in ids]
+    masks = det.masks[keep]
+    first = torch.from_numpy(np.stack([gt[i] for i in ids]))
+    turn = torch.from_numpy(np.array([[np.cos(0.7), 0, np.sin(0.7)], [0, 1, 0], [-np.sin(0.7), 0, np.cos(0.7)]]))
+    last = first.clone()
+    last[:, :3, :3] = turn @ first[:, :3, :3]
+    drift = [1.1, 1.25]
+    K = torch.from_numpy(rec.camera.K)
+    for guard in (0.05, 0.0):
+        p = Predictor.from_checkpoints(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds, config=InferenceConfig(
+            n_refiner_iterations=2, refiner_depth_drift=drift, silhouette_guard=guard))
+        out = p._refined_poses(last, [first, last], K, masks, ids, p.renderer).numpy()
+        went_back = [np.allclose(out[j, :3, :3], first[j, :3, :3].numpy()) for j in range(len(ids))]
+        for j, back in enumerate(went_back):
+            expected = first[j].numpy() if back else last[j].numpy()
+            np.testing.assert_allclose(out[j, :3, :3], expected[:3, :3], atol=1e-9)
+            np.testing.assert_allclose(out[j, :3, 3], expected[:3, 3] / (1.1 if back else 1.25), rtol=1e-9)
+        assert sum(went_back) >= (len(ids) + 1) // 2 if guard else not any(went_back)

@@ -204,6 +204,7 @@ def test_refiner_fine_iterations_are_read_and_checked():
     assert cfg.depth_iterations() == 2  # iterations 1 and 3 set the depth: its drift is that of 2
     cfg5 = inference_config(cfg.to_dict(), "pipeline.json", None, ["n_refiner_iterations=5", "refiner_fine_iterations=[5, 7]"])
     assert cfg5.depth_iterations() == 4  # (iteration 7 is not run)
+    assert [cfg.depth_iterations(through=i) for i in range(5)] == [0, 1, 1, 2, 2]  # after iterations 0-4 (4 run)
     off = inference_config(cfg.to_dict(), "pipeline.json", None, ["refiner_fine_iterations=[]"])
     assert off.refiner_fine_iterations == []  # off with the resolution left as it was
     for bad, field in (("refiner_fine_resolution=[250, 320]", "refiner_fine_resolution"),
@@ -213,3 +214,31 @@ def test_refiner_fine_iterations_are_read_and_checked():
         with pytest.raises(ConfigError) as e:
             inference_config(None, "", None, [bad])
         assert e.value.field == field, bad
+
+
+def test_the_exact_mask_settings_are_read_and_checked():
+    cfg = inference_config(None, "", None, ["silhouette_guard=0.05", "depth_from_mask=true"])
+    assert (cfg.silhouette_guard, cfg.depth_from_mask) == (0.05, True)
+    assert (InferenceConfig().silhouette_guard, InferenceConfig().depth_from_mask) == (0.0, False)  # off by default
+    for bad, field in (("silhouette_guard=1.5", "silhouette_guard"), ("silhouette_guard=-0.1", "silhouette_guard"),
+                       ("depth_from_mask=maybe", "depth_from_mask")):
+        with pytest.raises(ConfigError) as e:
+            inference_config(None, "pipeline.json", None, [bad])
+        assert e.value.field == field, bad
+
+
+def test_exact_masks_flag_gives_the_exact_mask_settings_and_set_wins():
+    import argparse
+
+    from cosy_lite.inference import command_infer
+    from cosy_lite.inference.settings import EXACT_MASK_SETTINGS, config_from_arguments
+
+    ap = argparse.ArgumentParser()
+    command_infer.add_arguments(ap)
+    cfg = config_from_arguments(ap.parse_args(["--detections", "oracle", "--exact-masks"]))
+    assert (cfg.silhouette_guard, cfg.depth_from_mask) == (0.05, True)
+    assert EXACT_MASK_SETTINGS == ("silhouette_guard=0.05", "depth_from_mask=true")
+    cfg = config_from_arguments(ap.parse_args(["--exact-masks", "--set", "silhouette_guard=0.1", "depth_from_mask=false"]))
+    assert (cfg.silhouette_guard, cfg.depth_from_mask) == (0.1, False)
+    plain = config_from_arguments(ap.parse_args(["--detections", "oracle"]))
+    assert (plain.silhouette_guard, plain.depth_from_mask) == (0.0, False)

@@ -166,6 +166,7 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
                "fuse_bn": False, "refiner_depth_drift": [1.01, 1.02],
                "refiner_fine_iterations": [3], "refiner_fine_resolution": [192, 256], "depth_from_mask": True,
+               "silhouette_guard": 0.1,
                "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
     needs = {"refiner_fine_iterations": {"refiner_fine_resolution": [192, 256]}}  # (not valid alone)

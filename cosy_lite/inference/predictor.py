@@ -43,7 +43,7 @@ from cosy_lite.bop.detections import MIN_BOX_SIZE_PX, Detections, degenerate_box
 from cosy_lite.geometry.pose_checks import orthonormalise, valid_poses
 from cosy_lite.inference.depth_refinement import DepthRefinement, box_masks
 from cosy_lite.inference.detection_filter import DetectionFilter
-from cosy_lite.inference.mask_depth import fit_depth_to_masks
+from cosy_lite.inference.mask_fit import fit_depth_to_masks, guarded_iterations
 from cosy_lite.inference.object_meshes import (
     SetupError,
     estimated_obj_ids,
@@ -424,12 +424,14 @@ class Predictor:
             det = dataclasses.replace(det, masks=torch.from_numpy(box_masks(det.boxes, (H, W))))
         icp = self.config.icp_settings
         verify = self.config.icp and depth is not None and icp.verify_candidates and icp.check_agreement
-        if self.config.depth_from_mask and given_masks is None:
-            warnings.warn(f"Predictor: depth_from_mask fits the depth to the detections' masks, but these {len(det)} "
-                          "detections are boxes only: the refiner's depth is kept", RuntimeWarning, stacklevel=2)
-        depth_masks = given_masks if self.config.depth_from_mask and self.refiner is not None else None
+        fits_masks = self.config.depth_from_mask or self.config.silhouette_guard > 0
+        if fits_masks and given_masks is None:
+            warnings.warn(f"Predictor: depth_from_mask / silhouette_guard compare the refined poses with the "
+                          f"detections' masks, but these {len(det)} detections are boxes only: the refiner's poses "
+                          "are kept", RuntimeWarning, stacklevel=2)
         with flush_denormals():
-            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock, verify, depth_masks)
+            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock, verify,
+                                                      given_masks if fits_masks and self.refiner is not None else None)
         icp_results, TCO_before_icp = None, None
         if self.config.icp and depth is not None:
             TCO_before_icp = TCO
@@ -449,13 +451,13 @@ class Predictor:
                              None if given_masks is None else given_masks.clone())
 
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock, verify: bool = False,
-               depth_masks: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+               exact_masks: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
         """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, and with several template
         candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose first, then the
         others after their one refiner iteration, or with ``candidate_choice="start"`` as the start
         stage made them (None with one candidate). ``verify``: ICP will verify the hypotheses
-        (with ``candidate_choice="start"`` they are kept only then). ``depth_masks [N,H,W]``: the refined
-        depth fitted to these masks (``depth_from_mask``, :func:`~cosy_lite.inference.mask_depth.fit_depth_to_masks`)."""
+        (with ``candidate_choice="start"`` they are kept only then). ``exact_masks [N,H,W]``: the masks the
+        refined poses are checked against (``silhouette_guard``, ``depth_from_mask``: :mod:`~cosy_lite.inference.mask_fit`)."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         N = len(det)
@@ -492,22 +494,19 @@ class Predictor:
         if self.refiner is not None:
             steps.append(("refiner", self.refiner, n_refiner))
         TCO = TCO_init
+        refined: list[Tensor] = []  # the refiner's poses after each of its iterations
         for role, model, n_iterations in steps:
             net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
             if n_iterations:
                 fine = (FineCrops.of(self.config.refiner_fine_iterations, self.config.refiner_fine_resolution)
                         if role == "refiner" else None)
-                TCO = iterate_poses(net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
-                                    self.config.batch_size, model.output, fine=fine,
-                                    first_iteration=1 + self.config.n_refiner_iterations - n_iterations)[-1]
+                poses = iterate_poses(net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
+                                      self.config.batch_size, model.output, fine=fine,
+                                      first_iteration=1 + self.config.n_refiner_iterations - n_iterations)
+                TCO, refined = poses[-1], poses if role == "refiner" else refined
             if role == "coarse":
                 TCO_coarse = TCO
-        drift = self.config.depth_drift(self.config.depth_iterations() if self.refiner is not None else 0)
-        if drift != 1.0:  # the refiner's own depth bias, measured from GT poses (InferenceConfig.refiner_depth_drift)
-            TCO = TCO.clone()
-            TCO[:, :3, 3] /= drift
-        if depth_masks is not None:
-            TCO = fit_depth_to_masks(TCO, K, depth_masks, ids, renderer)
+        TCO = self._refined_poses(TCO, refined, K, exact_masks, ids, renderer)
         clock.sync()
         spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
         clock.seconds["crops"] += spent
@@ -518,6 +517,27 @@ class Predictor:
             hypotheses[:, 0] = TCO
             hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
         return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
+
+    def _refined_poses(self, TCO: Tensor, refined: list[Tensor], K: Tensor, exact_masks: Tensor | None, ids: list[int],
+                       renderer: Renderer) -> Tensor:
+        """The refiner's result from ``TCO [N,4,4]`` (its last iteration, or the start when no iteration ran after
+        it) and ``refined`` (its poses after each iteration run here): with exact masks, the iteration the
+        silhouette guard keeps; its depth divided by the refiner's drift after the iterations that set it
+        (``refiner_depth_drift``); with exact masks, fitted to them (``depth_from_mask``)."""
+        first = 1 + self.config.n_refiner_iterations - len(refined)  # (the candidates' choice ran the first)
+        keep = torch.full((len(TCO),), len(refined) - 1, dtype=torch.long, device=TCO.device)
+        if refined and exact_masks is not None and self.config.silhouette_guard > 0:
+            keep = guarded_iterations(refined, K, exact_masks, ids, renderer, self.config.silhouette_guard).to(TCO.device)
+            TCO = torch.stack(refined)[keep, torch.arange(len(TCO), device=TCO.device)]
+        if self.refiner is not None:  # the refiner's own depth bias, measured from GT poses
+            drift = torch.tensor([self.config.depth_drift(self.config.depth_iterations(first + j))
+                                  for j in range(len(refined))] or [self.config.depth_drift(self.config.depth_iterations())],
+                                 dtype=TCO.dtype, device=TCO.device)
+            TCO = TCO.clone()
+            TCO[:, :3, 3] /= drift[keep.clamp(min=0)][:, None]
+        if exact_masks is not None and self.config.depth_from_mask:
+            TCO = fit_depth_to_masks(TCO, K, exact_masks, ids, renderer)
+        return TCO
 
     def _choose_candidate(self, candidates: Tensor, image: Tensor, K_b: Tensor, ids: list[int], points: Tensor,
                           renderer: Renderer, clock: Clock) -> tuple[Tensor, Tensor, Tensor, Tensor]:

@@ -1,4 +1,4 @@
-"""Depth from an exact mask (cosy_lite.inference.mask_depth, ``depth_from_mask``): real renders of YCB-V
+"""Depth from an exact mask (cosy_lite.inference.mask_fit, ``depth_from_mask``): real renders of YCB-V
 meshes; the fitted depth, the occlusion rule, the poses it leaves alone, and the pipeline setting."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cosy_lite.inference.mask_depth import MIN_VISIBLE, SCALES, depth_scale, fit_depth_to_masks
+from cosy_lite.inference.mask_fit import MIN_VISIBLE, SCALES, depth_scale, fit_depth_to_masks, guarded_iterations, silhouette_ious
 from cosy_lite.render.renderer import GlRenderer
 
 MUSTARD, DRILL = 5, 15
@@ -95,3 +95,30 @@ def test_depth_scale_searches_the_grid_around_one():
     assert depth_scale(disc(40), disc(50), (100.0, 100.0)) == 0.8
     assert abs(depth_scale(disc(40), disc(44), (100.0, 100.0)) - 40 / 44) < 0.006
     assert depth_scale(disc(40), np.zeros((200, 200), bool), (100.0, 100.0)) == 1.0
+
+
+def _turned(T: np.ndarray, deg: float) -> np.ndarray:
+    out = T.copy()
+    out[:3, :3] = cv2.Rodrigues(np.radians([0.0, deg, 0.0]))[0] @ T[:3, :3]
+    return out
+
+
+def test_the_guard_keeps_an_earlier_iteration_only_when_the_last_fits_the_mask_clearly_worse(renderer):
+    """Iterations [GT, 40 deg off] of the mustard bottle and [40 deg off, GT] of the drill against their exact
+    masks: the bottle goes back to its first iteration, the drill keeps its last; a margin above the IoU gap
+    keeps the last for both; a NaN last iteration gives way to the earlier one."""
+    ids = [MUSTARD, DRILL]
+    masks, K_t = _masks(renderer, ids), torch.from_numpy(K)
+    gt = np.stack([GT[i] for i in ids])
+    off = np.stack([_turned(GT[i], 40.0) for i in ids])
+    first, last = torch.from_numpy(np.stack([gt[0], off[1]])), torch.from_numpy(np.stack([off[0], gt[1]]))
+    ious = [silhouette_ious(T, K_t, masks, ids, renderer) for T in (first, last)]
+    np.testing.assert_allclose([ious[0][0], ious[1][1]], 1.0, atol=1e-6)  # the exact pose: the mask itself
+    gap = ious[0][0] - ious[1][0]
+    assert 0.1 < gap < 0.9 and ious[1][1] > ious[0][1] + 0.1
+    assert guarded_iterations([first, last], K_t, masks, ids, renderer, 0.05).tolist() == [0, 1]
+    assert guarded_iterations([first, last], K_t, masks, ids, renderer, gap + 0.01).tolist() == [1, 1]
+    assert guarded_iterations([last], K_t, masks, ids, renderer, 0.05).tolist() == [0, 0]  # one iteration: no choice
+    broken = last.clone()
+    broken[1, 0, 3] = float("nan")
+    assert guarded_iterations([first, broken], K_t, masks, ids, renderer, 0.05).tolist() == [0, 0]
