@@ -176,6 +176,11 @@ def test_exact_masks_are_refused_for_the_detectors_masks(tmp_path, capsys):
     rc = infer.main(["--dataset", str(tmp_path), "--coarse", "c.pt", "--exact-masks"])
     assert rc == 2
     _one_error(capsys.readouterr().err, "--exact-masks: the detector's masks are not exact")
+    from cosy_lite.cli import main
+
+    assert main(["predict", "--rgb", "x.png", "--camera", "c.json", "--pretrained", "ycbvsynth", "--exact-masks",
+                 "--out", str(tmp_path / "o")]) == 2
+    _one_error(capsys.readouterr().err, "--exact-masks: the detector's masks are not exact")
 
 
 def test_infer_py_missing_dataset(tmp_path, capsys):
