@@ -252,6 +252,7 @@ def test_infer_refuses_depth_of_another_size(root: Path):
     class _IcpPredictor:  # only what run_on_split touches before the poses
         config = InferenceConfig(icp=True)
         detector, coarse, refiner, obj_ids = None, None, None, [1, 2]
+        reads_masks = True  # (ICP reads the masks)
 
     cv2.imwrite(str(scene_dir(root) / "depth" / "000000.png"), np.full((240, 320), 7000, np.uint16))
     with pytest.raises(BopFormatError, match=r"000000\.png \[size\]: 320x240 pixels, but the image .* is 640x480"):
