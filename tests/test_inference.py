@@ -439,6 +439,7 @@ def test_the_silhouette_guard_keeps_an_iteration_with_its_own_depth_drift(tiny_s
     for guard in (0.05, 0.0):
         p = Predictor.from_checkpoints(coarse=ckpts["coarse"], refiner=ckpts["refiner"], dataset=ds, config=InferenceConfig(
             n_refiner_iterations=2, refiner_depth_drift=drift, silhouette_guard=guard))
+        assert p.reads_masks == (guard > 0)  # (a coarse start reads no masks of its own: the split run loads them for it)
         out = p._refined_poses(last, [first, last], K, masks, ids, p.renderer).numpy()
         went_back = [np.allclose(out[j, :3, :3], first[j, :3, :3].numpy()) for j in range(len(ids))]
         for j, back in enumerate(went_back):

@@ -338,8 +338,8 @@ class Predictor:
     @property
     def reads_masks(self) -> bool:
         """True when :meth:`predict` reads detection masks given with the detections: template starts, ICP,
-        ``depth_from_mask``."""
-        return self.needs_masks or self.config.icp or self.config.depth_from_mask
+        ``silhouette_guard``, ``depth_from_mask``."""
+        return self.needs_masks or self.config.icp or self.config.depth_from_mask or self.config.silhouette_guard > 0
 
     def _template_candidates(self, det: Detections, K: np.ndarray, rgb: np.ndarray) -> np.ndarray:
         """``[N,k,4,4]`` float64: the ``n_candidates`` best template poses of each detection (ranked by
