@@ -101,9 +101,6 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
                                ("--vis", args.vis, 0)):
         if value is not None and value < least:
             return f"{name} {value}: expected an integer >= {least}"
-    if args.exact_masks and args.detections is None:
-        return ("--exact-masks: the detector's masks are not exact (it lowers their AR); give --detections oracle "
-                "or a file of exact masks")
     return None
 
 

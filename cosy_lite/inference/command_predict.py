@@ -124,9 +124,6 @@ def _argument_problem(args: argparse.Namespace) -> str | None:
                                                              args.scorer)):
         return ("give either checkpoints (--pretrained/--coarse/--refiner/--detector/--scorer) or --onnx EXPORT_DIR, "
                 "not both")
-    if args.exact_masks and args.detections is None:
-        return ("--exact-masks: the detector's masks are not exact (it lowers their AR); give --detections FILE.json "
-                "with exact masks")
     if args.meshes is None and args.pretrained is None:
         return "give --meshes NAME_OR_DIR (the objects' 3D models), or --pretrained NAME (its objects' meshes)"
     if args.depth_scale is not None and not (np.isfinite(args.depth_scale) and args.depth_scale > 0):

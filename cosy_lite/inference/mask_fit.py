@@ -38,23 +38,29 @@ OUTSIDE_WEIGHT = 0.5  # cost of a silhouette pixel outside the mask, against 1 f
 MIN_VISIBLE = 0.8  # mask area / silhouette area at the refined pose under which the depth is kept
 
 
+def _silhouettes(TCO: Tensor, K: Tensor, size: tuple[int, int], obj_ids: Sequence[int],
+                 renderer: Renderer) -> tuple[list[int], np.ndarray]:
+    """(the rows of ``TCO [N,4,4]`` that can be rendered: finite, in front of the camera; their full-image
+    silhouettes ``[n,H,W]`` bool, rendered with ``K [3,3]``)."""
+    T = TCO.detach().double().cpu().numpy()
+    live = [i for i in range(len(T)) if np.isfinite(T[i]).all() and T[i, 2, 3] > 0]
+    if not live:
+        return live, np.zeros((0, *size), dtype=bool)
+    _, depth = renderer.render_tensors([int(obj_ids[i]) for i in live], T[live],
+                                       np.repeat(K.detach().double().cpu().numpy()[None], len(live), 0), size,
+                                       depth_only=True)
+    return live, (depth[:, 0] > 0).cpu().numpy()
+
+
 def silhouette_ious(TCO: Tensor, K: Tensor, masks: Tensor, obj_ids: Sequence[int], renderer: Renderer) -> np.ndarray:
     """``[N]`` float64: the IoU of each object's silhouette at ``TCO [N,4,4]`` (rendered with ``K [3,3]``)
     with its mask in ``masks [N,H,W]`` bool; -1 for a non-finite pose or one behind the camera."""
-    N, H, W = masks.shape
-    ious = np.full(N, -1.0)
-    T = TCO.detach().double().cpu().numpy()
-    live = [i for i in range(N) if np.isfinite(T[i]).all() and T[i, 2, 3] > 0]
-    if not live:
-        return ious
-    _, depth = renderer.render_tensors([int(obj_ids[i]) for i in live], T[live],
-                                       np.repeat(K.detach().double().cpu().numpy()[None], len(live), 0), (H, W),
-                                       depth_only=True)
-    sil = (depth[:, 0] > 0).cpu().numpy()
-    m = masks.detach().cpu().numpy().astype(bool)[live]
-    inter = (sil & m).reshape(len(live), -1).sum(1)
-    union = (sil | m).reshape(len(live), -1).sum(1)
-    ious[live] = inter / np.maximum(union, 1)
+    ious = np.full(len(masks), -1.0)
+    live, sil = _silhouettes(TCO, K, (int(masks.shape[1]), int(masks.shape[2])), obj_ids, renderer)
+    if live:
+        m = masks.detach().cpu().numpy().astype(bool)[live]
+        inter = (sil & m).reshape(len(live), -1).sum(1)
+        ious[live] = inter / np.maximum((sil | m).reshape(len(live), -1).sum(1), 1)
     return ious
 
 
@@ -78,12 +84,11 @@ def depth_scale(silhouette: np.ndarray, mask: np.ndarray, centre: tuple[float, f
     """The depth factor (one of :data:`SCALES`, or 1.0 when kept) for one object: ``silhouette`` and
     ``mask`` ``[H,W]`` bool, ``centre`` (x, y) px of the projected object origin."""
     mask_area = int(mask.sum())
-    both = silhouette | mask
     if mask_area == 0 or not silhouette.any() or mask_area < MIN_VISIBLE * int(silhouette.sum()):
         return 1.0
     H, W = mask.shape
     cx, cy = centre
-    ys, xs = np.nonzero(both)
+    ys, xs = np.nonzero(silhouette | mask)
     # a window that holds S(k) for every k tried: 1.3 x the farthest pixel from the centre (k >= 0.8)
     radius = 1.3 * max(np.abs(xs - cx).max(), np.abs(ys - cy).max()) + 4
     x0, x1 = int(max(0, cx - radius)), int(min(W, cx + radius + 1))
@@ -108,17 +113,8 @@ def fit_depth_to_masks(TCO: Tensor, K: Tensor, masks: Tensor, obj_ids: Sequence[
     silhouette (rendered with ``K [3,3]``) and ``masks [N,H,W]`` bool. Non-finite poses or poses
     behind the camera are returned as they are."""
     out = TCO.clone()
-    N, H, W = masks.shape
-    if N == 0:
-        return out
-    T = TCO.detach().double().cpu().numpy()
-    K_np = K.detach().double().cpu().numpy()
-    live = [i for i in range(N) if np.isfinite(T[i]).all() and T[i, 2, 3] > 0]
-    if not live:
-        return out
-    _, depth = renderer.render_tensors([int(obj_ids[i]) for i in live], T[live], np.repeat(K_np[None], len(live), 0),
-                                       (H, W), depth_only=True)
-    silhouettes = (depth[:, 0] > 0).cpu().numpy()
+    live, silhouettes = _silhouettes(TCO, K, (int(masks.shape[1]), int(masks.shape[2])), obj_ids, renderer)
+    T, K_np = TCO.detach().double().cpu().numpy(), K.detach().double().cpu().numpy()
     mask_np = masks.detach().cpu().numpy().astype(bool)
     for row, i in enumerate(live):
         c = K_np @ T[i, :3, 3]

@@ -193,6 +193,9 @@ def flag_problem(args: Any) -> str | None:
             InferenceConfig(**{key: value, **({"start": "templates"} if key == "n_candidates" else {})})
         except FieldValueError as e:
             return f"--{attr.replace('_', '-')} {value}: {e.problem.split(': ', 1)[-1]}"
+    if getattr(args, "exact_masks", None) and getattr(args, "detections", None) is None:
+        return ("--exact-masks: the detector's masks are not exact (it lowers their AR); give --detections with exact "
+                "masks (infer: oracle or a file)")
     return None
 
 
