@@ -393,6 +393,15 @@ def test_onnx_detector_feeds_the_predictor(tiny_synth_root, export):
     est_ref, est = ref.predict(rgb, rec.camera.K), p.predict(rgb, rec.camera.K)
     assert torch.equal(est.obj_ids, est_ref.obj_ids) and est.timings["detection"] > 0
     assert float((est.TCO - est_ref.TCO).abs().max()) <= 1e-4
+    # the setting mask_threshold reaches both detectors' masks: the session's own at that threshold
+    low = InferenceConfig(n_refiner_iterations=0, mask_threshold=0.2)
+    p_low = Predictor.from_onnx(export["models"], dataset=ds, threads=1, config=low)
+    ref_low = Predictor.from_checkpoints(detector=export["detector"], coarse=export["coarse"], dataset=ds, config=low)
+    _, _, scores, masks_low = p_low.detector.run(rgb, 0.2)
+    masks_low = masks_low[np.argsort(-scores, kind="stable")]  # the predictor's order: by decreasing score
+    assert np.array_equal(p_low.detect(rgb).masks.numpy(), masks_low)
+    assert (ref_low.detect(rgb).masks.numpy() == masks_low).mean() >= 0.999
+    assert masks_low.sum() > det.masks.numpy().sum()  # more pixels above 0.2 than above 0.5
 
 
 def test_infer_runs_a_split_with_the_exported_detector(tiny_synth_root, export, tmp_path):

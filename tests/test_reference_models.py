@@ -166,7 +166,7 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
                "fuse_bn": False, "refiner_depth_drift": [1.01, 1.02],
                "refiner_fine_iterations": [3], "refiner_fine_resolution": [192, 256], "depth_from_mask": True,
-               "silhouette_guard": 0.1,
+               "silhouette_guard": 0.1, "mask_threshold": 0.3,
                "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
     needs = {"refiner_fine_iterations": {"refiner_fine_resolution": [192, 256]}}  # (not valid alone)
@@ -194,6 +194,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
     ref = reference_models(NAME)
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
     assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 5)
+    assert p.config.mask_threshold == 0.275  # the set's detector's masks (its pipeline.json), not torchvision's 0.5
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
     assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]

@@ -37,7 +37,7 @@ from cosy_lite.export.manifest import (
     OnnxModelError,
     parse_json_meta,
 )
-from cosy_lite.nets.detection_masks import binary_masks
+from cosy_lite.nets.detection_masks import MASK_THRESHOLD, binary_masks
 from cosy_lite.nets.flow_pose_net import DEPTH_CHANNELS, FLOW_CHANNELS
 from cosy_lite.nets.flow_pose_solver import FLOW_STRIDE
 
@@ -215,25 +215,27 @@ class OnnxDetector:
 
         return LabelMap(tuple(self.obj_ids))
 
-    def run(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def run(self, rgb: np.ndarray,
+            mask_threshold: float = MASK_THRESHOLD) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``rgb [H,W,3]`` uint8 -> (boxes [N,4] float32 xyxy px, obj_ids [N] int64, scores [N]
-        float32, masks [N,H,W] bool), in the network's order (decreasing score per class)."""
+        float32, masks [N,H,W] bool: probabilities above ``mask_threshold``), in the network's order
+        (decreasing score per class)."""
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ValueError(f"rgb must be [H,W,3] uint8, got {rgb.dtype} {rgb.shape}")
         image = np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32) / np.float32(255.0)
         boxes, labels, scores, masks = self.session.run(None, {self.input_name: image})
         return (boxes.astype(np.float32, copy=False), self._table[labels.astype(np.int64)],
-                scores.astype(np.float32, copy=False), binary_masks(masks[:, 0]))
+                scores.astype(np.float32, copy=False), binary_masks(masks[:, 0], mask_threshold))
 
-    def detect(self, rgb: np.ndarray) -> Any:
+    def detect(self, rgb: np.ndarray, mask_threshold: float = MASK_THRESHOLD) -> Any:
         """:class:`~cosy_lite.bop.detections.Detections` of ``rgb`` (``time_s``: seconds of the network)."""
         import torch
 
         from cosy_lite.bop.detections import Detections
 
         t0 = time.perf_counter()
-        boxes, obj_ids, scores, masks = self.run(rgb)
+        boxes, obj_ids, scores, masks = self.run(rgb, mask_threshold)
         det = Detections(torch.from_numpy(boxes), torch.from_numpy(obj_ids), torch.from_numpy(scores),
                          torch.from_numpy(masks))
         det.time_s = time.perf_counter() - t0

@@ -366,9 +366,10 @@ class Predictor:
         clock = Clock(self.device)
         with clock("detection"), flush_denormals():
             if isinstance(self.detector, nn.Module):
-                det = detect(self.detector, [self._image_tensor(_as_rgb(rgb))[0]])[0].to("cpu")
+                image = self._image_tensor(_as_rgb(rgb))[0]
+                det = detect(self.detector, [image], self.config.mask_threshold)[0].to("cpu")
             else:  # onnxruntime (OnnxDetector): numpy in, Detections out
-                det = self.detector.detect(_as_rgb(rgb))
+                det = self.detector.detect(_as_rgb(rgb), self.config.mask_threshold)
         order = torch.argsort(det.scores, descending=True, stable=True)
         det = det.select(order)
         det.time_s = clock.seconds["detection"]

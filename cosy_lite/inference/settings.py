@@ -20,6 +20,7 @@ from typing import Any, Mapping, Sequence
 from cosy_lite.errors import FieldValueError
 from cosy_lite.inference.icp import IcpConfig
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
+from cosy_lite.nets.detection_masks import MASK_THRESHOLD
 
 CANDIDATE_CHOICES = ("confidence", "start")
 PRECISIONS = ("fp32", "bf16", "int8")  # bf16: torch autocast; int8: the quantised ONNX pose networks
@@ -63,6 +64,11 @@ class InferenceConfig:
     silhouette_guard: float = 0.0
     # After the refiner, the depth whose rendered silhouette best covers the detection's mask.
     depth_from_mask: bool = False
+    # The detector's masks: its mask head's probabilities above this (torchvision: 0.5). They set the start
+    # stage's silhouettes and appearance crops and the ICP windows (cosy_lite.nets.detection_masks). A set's
+    # pipeline.json chooses its detector's: ycbvsynth 0.275 (larger masks; chosen on a second generated split:
+    # RGB / + ICP AR 0.2885 / 0.4916 at 0.5, 0.2944 / 0.5269 at 0.275; mask AP 0.351 -> 0.337: bench/RESULTS.md).
+    mask_threshold: float = MASK_THRESHOLD
     min_score: float = 0.0  # pose only detections scoring at least this (BOP19: any threshold lowers AR)
     one_per_region: bool = False  # at most one detection per image region (mask IoU > 0.5, any class)
     max_per_object: int = 0  # at most this many detections per object and image, the best scored (0: no limit)
@@ -78,6 +84,7 @@ class InferenceConfig:
                   ("n_candidates", self.n_candidates >= 1, "an integer >= 1"),
                   ("candidate_choice", self.candidate_choice in CANDIDATE_CHOICES, f"one of {list(CANDIDATE_CHOICES)}"),
                   ("n_refiner_iterations", self.n_refiner_iterations >= 0, "an integer >= 0"),
+                  ("mask_threshold", 0.0 < self.mask_threshold < 1.0, "a mask probability in (0, 1)"),
                   ("min_score", 0.0 <= self.min_score <= 1.0, "a score in [0, 1]"),
                   ("max_per_object", self.max_per_object >= 0, "an integer >= 0 (0: no limit)"),
                   ("precision", self.precision in PRECISIONS, f"one of {list(PRECISIONS)}"),

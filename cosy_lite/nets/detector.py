@@ -34,7 +34,7 @@ from torchvision.ops.feature_pyramid_network import FeaturePyramidNetwork, LastL
 
 from cosy_lite.bop.detections import Detections
 from cosy_lite.nets.backbones import norm_layer
-from cosy_lite.nets.detection_masks import binary_masks
+from cosy_lite.nets.detection_masks import MASK_THRESHOLD, binary_masks
 
 if TYPE_CHECKING:
     from timm.models.efficientnet import EfficientNetFeatures
@@ -290,7 +290,8 @@ class Detector(nn.Module):
                 raise ValueError(f"target {i}: labels {t['labels'].tolist()} outside 1..{self.label_map.n_classes - 1} "
                                  "(labels are LabelMap.labels(obj_ids), not obj_ids)")
 
-    def forward(self, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]] | None = None):
+    def forward(self, images: list[torch.Tensor], targets: list[dict[str, torch.Tensor]] | None = None,
+                mask_threshold: float = MASK_THRESHOLD):
         for i, im in enumerate(images):
             if im.ndim != 3 or im.shape[0] != 3 or not im.is_floating_point():
                 raise ValueError(f"image {i}: expected float [3,H,W] in [0,1], got {im.dtype} {tuple(im.shape)}")
@@ -299,10 +300,11 @@ class Detector(nn.Module):
                 raise ValueError("training mode needs targets")
             self._check_targets(images, targets)
             return self.net(images, targets)
-        return [self._detections(o) for o in self.net(images)]
+        return [self._detections(o, mask_threshold) for o in self.net(images)]
 
-    def _detections(self, out: dict[str, torch.Tensor]) -> Detections:
-        masks = torch.from_numpy(binary_masks(out["masks"][:, 0].cpu().numpy())).to(out["masks"].device)
+    def _detections(self, out: dict[str, torch.Tensor], mask_threshold: float) -> Detections:
+        binary = binary_masks(out["masks"][:, 0].cpu().numpy(), mask_threshold)
+        masks = torch.from_numpy(binary).to(out["masks"].device)
         return Detections(boxes=out["boxes"], obj_ids=self.label_map.obj_ids_of(out["labels"]),
                           scores=out["scores"], masks=masks)
 
@@ -334,14 +336,15 @@ def detector_losses(model: nn.Module, images: list[torch.Tensor],
 
 
 @torch.no_grad()
-def detect(model: nn.Module, images: list[torch.Tensor]) -> list[Detections]:
-    """Detections per image (boxes in the input image's pixels, masks at its size).
+def detect(model: nn.Module, images: list[torch.Tensor], mask_threshold: float = MASK_THRESHOLD) -> list[Detections]:
+    """Detections per image (boxes in the input image's pixels, masks at its size: the mask head's
+    probabilities above ``mask_threshold``, :func:`~cosy_lite.nets.detection_masks.binary_masks`).
 
     Runs in eval mode and restores the previous mode afterwards.
     """
     was_training = model.training
     model.eval()
     try:
-        return model(images)
+        return model(images, mask_threshold=mask_threshold)
     finally:
         model.train(was_training)
