@@ -1,7 +1,7 @@
 """Per-image latency of a reference set's pipeline under several settings, side by side.
 
 Usage: python bench/bench_reference_pipeline.py [--pretrained ycbvsynth] [--dataset data/ycbvsynth]
-       [--images 5] [--repeats 2] [--threads 2] [--onnx EXPORT_DIR]
+       [--images 5] [--repeats 2] [--threads 2] [--onnx EXPORT_DIR] [--targets]
        [--variant NAME KEY=VALUE ...] [--variant ...]
 
 The pipeline of ``cosy-lite infer --pretrained NAME`` (its detector, start, refiner; the templates
@@ -11,7 +11,10 @@ set's settings (``inference_config`` overrides, e.g. ``n_candidates=1``); withou
 own settings alone. ``--onnx``: the same with the networks of a ``cosy-lite export`` folder in
 onnxruntime. The variants are called in turn on every image (round-robin, so they share the
 machine's load); the table gives the median seconds per image and each one's ratio to the first
-variant of its backend and mode.
+variant of its backend and mode. Every detection is posed, as ``cosy-lite predict``; ``--targets``:
+only those of each image's BOP19 targets, as ``cosy-lite infer`` (``Predictor.predict(...,
+inst_counts)``: its ``inst_count`` best per object, or with ``vivo_candidates`` N the N x
+``inst_count`` best, of which the most confident go on).
 
 The settings of the pipeline issue 28 was filed on (964259a: silhouette templates, 5 candidates
 ranked by the refiner's confidence, ICP of the chosen one only), in today's code: ``--variant filed
@@ -76,12 +79,15 @@ def main(argv: list[str] | None = None) -> None:
                    help="default: $COSY_LITE_CACHE/templates, as cosy-lite infer")
     p.add_argument("--variant", nargs="+", action="append", metavar="NAME KEY=VALUE",
                    help="a name and the settings it changes, e.g. --variant one n_candidates=1")
+    p.add_argument("--targets", action="store_true",
+                   help="pose only the detections of each image's BOP19 targets, as cosy-lite infer (default: all)")
     args = p.parse_args(argv)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP; see infer.py
 
     import torch
 
     from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.inference.vivo import targets_by_image
     from cosy_lite.render.gl import use_egl
 
     use_egl()
@@ -90,21 +96,23 @@ def main(argv: list[str] | None = None) -> None:
     records = list(ds.images("test"))[:args.images]
     variants = parse_variants(args.variant)
     preds = predictors(args, variants, ds)
-    images = [(ds.load_rgb(r), ds.load_depth(r), r.camera.K) for r in records]
+    targets = targets_by_image(ds.test_targets()) if args.targets else {}
+    images = [(ds.load_rgb(r), ds.load_depth(r), r.camera.K, targets.get((r.scene_id, r.im_id))) for r in records]
     for pred in preds.values():  # templates rendered (or read) and the networks warmed before the clock
-        for rgb, depth, K in images:
-            pred.predict(rgb, K, depth)
+        for rgb, depth, K, counts in images:
+            pred.predict(rgb, K, depth, inst_counts=counts)
     load0 = os.getloadavg()
     seconds: dict[tuple[str, str, str], list[float]] = {}
     for _ in range(args.repeats):
-        for rgb, depth, K in images:
+        for rgb, depth, K, counts in images:
             for key, pred in preds.items():
                 t = time.perf_counter()
-                pred.predict(rgb, K, depth)
+                pred.predict(rgb, K, depth, inst_counts=counts)
                 seconds.setdefault(key, []).append(time.perf_counter() - t)
     load1 = os.getloadavg()
     print(f"# {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} threads; "
-          f"reference set {args.pretrained}, {len(images)} test images of {ds.root}, detector included; "
+          f"reference set {args.pretrained}, {len(images)} test images of {ds.root}, detector included, "
+          f"{'the BOP19 targets posed' if args.targets else 'every detection posed'}; "
           f"load average before {tuple(round(v, 2) for v in load0)}, after {tuple(round(v, 2) for v in load1)}")
     print("| backend | mode | variant | settings | s / image (median) | vs first variant |")
     print("| --- | --- | --- | --- | ---: | ---: |")

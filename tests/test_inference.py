@@ -20,7 +20,7 @@ from cosy_lite.bop.results import HEADER, read_results_csv
 from cosy_lite.inference.bop_run import run_on_split
 from cosy_lite.inference.predictor import TIMING_KEYS, Predictor
 from cosy_lite.inference.settings import InferenceConfig
-from cosy_lite.inference.vivo import select_top_instances, targets_by_image
+from cosy_lite.inference.vivo import most_confident, select_candidates, select_top_instances, targets_by_image
 from cosy_lite.nets.initial_pose import CANONICAL_ROTATIONS, initial_pose_from_boxes
 from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
 from cosy_lite.weights.loaders import PoseModel
@@ -227,6 +227,29 @@ def test_select_top_instances():
                      torch.tensor([0.2, 0.9, 0.8, 0.5, 0.3, 0.7]))
     out = select_top_instances(det, {1: 2, 2: 1})
     assert out.obj_ids.tolist() == [2, 1, 1] and out.scores.tolist() == pytest.approx([0.9, 0.8, 0.5])
+
+
+def test_select_candidates_takes_more_per_instance_above_the_score_ratio():
+    det = Detections(torch.tensor([[0, 0, 10, 10]] * 6, dtype=torch.float32), torch.tensor([1, 2, 1, 1, 2, 5]),
+                     torch.tensor([0.2, 0.9, 0.8, 0.5, 0.3, 0.7]))
+    one = select_candidates(det, {1: 1, 2: 1})
+    assert one.scores.tolist() == select_top_instances(det, {1: 1, 2: 1}).scores.tolist()
+    # obj 1: 0.8 and 0.5 (>= 0.5 x 0.8); obj 2: 0.9, its 0.3 under 0.45; obj 5: not a target
+    out = select_candidates(det, {1: 1, 2: 1}, per_instance=2, score_ratio=0.5)
+    assert out.obj_ids.tolist() == [2, 1, 1] and out.scores.tolist() == pytest.approx([0.9, 0.8, 0.5])
+    # two instances of obj 1: its best two always, a third only above the ratio (0.2 < 0.4)
+    two = select_candidates(det, {1: 2}, per_instance=2, score_ratio=0.5)
+    assert two.scores.tolist() == pytest.approx([0.8, 0.5])
+    assert len(select_candidates(det, {1: 2}, per_instance=2, score_ratio=0.0)) == 3
+    with pytest.raises(ValueError, match="per_instance"):
+        select_candidates(det, {1: 1}, per_instance=0)
+
+
+def test_most_confident_keeps_each_objects_instances_of_highest_confidence():
+    ids = torch.tensor([1, 1, 2, 2, 5, 1])
+    conf = torch.tensor([0.2, 0.6, 0.9, 0.9, 0.8, 0.7], dtype=torch.float64)
+    assert most_confident(ids, conf, {1: 1, 2: 1}).tolist() == [2, 5]  # (ties: the earlier; obj 5 not asked)
+    assert most_confident(ids, conf, {1: 2, 2: 2, 5: 1}).tolist() == [1, 2, 3, 4, 5]
 
 
 def test_empty_detections(tiny_synth_root, predictor, tmp_path):

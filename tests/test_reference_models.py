@@ -166,7 +166,7 @@ def test_command_lines_take_every_inference_field_of_pipeline_json(tmp_path, mon
                "one_per_region": True, "icp": True, "precision": "bf16", "batch_size": 7, "channels_last": False,
                "fuse_bn": False, "refiner_depth_drift": [1.01, 1.02],
                "refiner_fine_iterations": [3], "refiner_fine_resolution": [192, 256], "depth_from_mask": True,
-               "silhouette_guard": 0.1, "mask_threshold": 0.3,
+               "silhouette_guard": 0.1, "mask_threshold": 0.3, "vivo_candidates": 3, "vivo_score_ratio": 0.6,
                "icp_settings": {"max_translation": 0.07, "verify_candidates": False}}
     assert set(changed) == {f.name for f in dataclasses.fields(InferenceConfig)}  # every field is tried
     needs = {"refiner_fine_iterations": {"refiner_fine_resolution": [192, 256]}}  # (not valid alone)
@@ -195,6 +195,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
     assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 5)
     assert p.config.mask_threshold == 0.275  # the set's detector's masks (its pipeline.json), not torchvision's 0.5
+    assert (p.config.vivo_candidates, p.config.vivo_score_ratio) == (2, 0.3)  # two detections per ViVo instance
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
     assert p.templates.appearance.scorer is not None and ref.path("scorer").name == "scorer.safetensors"
     assert p.obj_ids == [1, 2, 5, 8]
@@ -394,3 +395,35 @@ def test_accuracy_of_the_reference_models(test_images, templates_cache, onnx_exp
     print(f"{backend} {detections} (bug: {injected_bug}): {scores}")
     floor = FLOORS[detections]
     assert scores["ar"] >= floor["ar"] and scores["mssd_0.1d"] >= floor["mssd_0.1d"], (scores, floor)
+
+
+def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_images, templates_cache):
+    """A decoy labelled X on another object's region outscores X's own detection: with one candidate per
+    instance the decoy is posed; with ``vivo_candidates`` 2 the refiner's confidence picks X's own."""
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.detections import Detections, oracle_detections
+
+    ds = BopDataset(test_images)
+    predictors = {n: Predictor.from_pretrained(
+        NAME, dataset=test_images, detector=False, templates_cache=templates_cache,
+        config=inference_config(reference_models(NAME).inference, overrides=[f"vivo_candidates={n}"])) for n in (1, 2)}
+    right = trials = 0
+    for rec in list(ds.images("test"))[:2]:
+        rgb, oracle = ds.load_rgb(rec), oracle_detections(ds, rec, min_visib_fract=0.5)
+        for i in range(min(len(oracle), 4)):
+            decoy = (i + 1) % len(oracle)
+            obj = int(oracle.obj_ids[i])
+            det = Detections(oracle.boxes[[decoy, i]], torch.tensor([obj, obj]), torch.tensor([0.9, 0.5]),
+                             oracle.masks[[decoy, i]])
+            est = {n: p.predict(rgb, rec.camera.K, detections=det, inst_counts={obj: 1}) for n, p in predictors.items()}
+            assert len(est[1]) == len(est[2]) == 1
+            assert est[1].scores.tolist() == pytest.approx([0.9])  # the best scored: the decoy
+            picked_own = est[2].scores.tolist() == pytest.approx([0.5])
+            for e in est.values():  # each estimate is its own detection's: its origin projects into that box
+                uvw = torch.as_tensor(rec.camera.K) @ e.TCO[0, :3, 3]
+                (x0, y0, x1, y1), (u, v) = e.boxes[0].tolist(), (uvw[:2] / uvw[2]).tolist()
+                assert x0 - 10 <= u <= x1 + 10 and y0 - 10 <= v <= y1 + 10, (e.boxes[0], u, v)
+            right += picked_own
+            trials += 1
+    print(f"vivo_candidates=2 kept the object's own detection in {right} of {trials}")
+    assert trials >= 6 and right >= trials - 1

@@ -5,11 +5,12 @@ and the checker's verdict.
 
 Per target image of ``test_targets_bop19.json``: read the image (and depth when ICP is on) ->
 detections (the detector, the ground truth ("oracle"), or a BOP22 detections JSON file) -> per
-object its ``inst_count`` best detections (:func:`~cosy_lite.inference.vivo.select_top_instances`)
--> poses -> one CSV row per valid estimate, ranked by score. ``time`` is the wall time of the image
-from detection to the last pose (file reading excluded), plus the file's own detection time for
-a detections JSON (BOP: detection time counts); oracle detections cost nothing. Invalid poses
-(NaN, not a rotation, behind the camera) are never written: they are counted and reported.
+object its ``inst_count`` best detections (with the setting ``vivo_candidates`` N > 1: its N x
+``inst_count`` best, of which the ``inst_count`` the refiner is most confident of go on;
+:mod:`~cosy_lite.inference.vivo`) -> poses -> one CSV row per valid estimate, ranked by score.
+``time`` is the wall time of the image from detection to the last pose (file reading excluded),
+plus the file's own detection time for a detections JSON (BOP: detection time counts); oracle
+detections cost nothing. Invalid poses (NaN, not a rotation, behind the camera) are never written: they are counted and reported.
 When the predictor's detector runs, all its detections (before the per-object selection) are also
 written as BOP22 ``METHOD_DATASET-SPLIT.json`` beside the CSV: the input of the BOP 2D tasks'
 evaluation (``cosy-lite eval --task 2d-detection | 2d-segmentation``).
@@ -41,7 +42,7 @@ from cosy_lite.bop.validate import Problem, check_results, resolve_split_folder
 from cosy_lite.errors import BopFormatError
 from cosy_lite.inference.icp import icp_rejection_kind
 from cosy_lite.inference.predictor import TIMING_KEYS, PoseEstimates, Predictor, SetupError
-from cosy_lite.inference.vivo import select_top_instances, targets_by_image
+from cosy_lite.inference.vivo import select_candidates, targets_by_image
 
 ORACLE = "oracle"
 TASKS = ("6d-localization", "6d-detection")  # BOP19 ViVo (test_targets_bop19.json) | BOP24 (test_targets_bop24.json)
@@ -196,14 +197,25 @@ def select_top_detections(detections: Detections, obj_ids: set[int], n: int = MA
 
 
 def _image_targets(dataset: BopDataset, task: str, predictor: Predictor, detector_path: Path | None):
-    """(image keys, per image a function Detections -> the detections to estimate) for ``task``."""
+    """(image keys, per image a function Detections -> the detections to estimate (6d-detection), or its
+    ``{obj_id: inst_count}`` (6d-localization)) for ``task``."""
     if task == "6d-detection":
         known = set(predictor.obj_ids)
         keys = list(dict.fromkeys((t.scene_id, t.im_id) for t in dataset.test_image_targets()))
         return keys, {k: (lambda det: select_top_detections(det, known)) for k in keys}
     per_image = targets_by_image(dataset.test_targets())
     check_coverage(predictor, dataset.test_targets_path, {o for c in per_image.values() for o in c}, detector_path)
-    return list(per_image), {k: (lambda det, c=c: select_top_instances(det, c)) for k, c in per_image.items()}
+    return list(per_image), per_image
+
+
+def _to_estimate(predictor: Predictor, det: Detections, target: Callable[[Detections], Detections] | dict[int, int]
+                 ) -> tuple[Detections, dict[int, int] | None]:
+    """(the detections to pose, the ViVo instance counts for :meth:`Predictor.predict`) of one image: ``target``
+    is the task's choice of detections (6d-detection) or the image's ``{obj_id: inst_count}`` (6d-localization)."""
+    if callable(target):
+        return target(det), None
+    cfg = predictor.config
+    return select_candidates(det, target, cfg.vivo_candidates, cfg.vivo_score_ratio), target
 
 
 def _image_inputs(dataset: BopDataset, rec: ImageRecord, icp: bool, source: Callable[[Any], Detections | None] | None,
@@ -296,8 +308,8 @@ def run_on_split(predictor: Predictor, dataset: BopDataset, out_dir: str | Path,
         det = det.select(~bad)
         if given is None:  # the detector's: all of them, for the BOP 2D tasks
             detector_entries += detections_to_bop22({(scene_id, im_id): det})
-        det = choose[(scene_id, im_id)](predictor.detection_filter(det))
-        est = predictor.predict(rgb, rec.camera.K, depth, detections=det)
+        det, inst_counts = _to_estimate(predictor, predictor.detection_filter(det), choose[(scene_id, im_id)])
+        est = predictor.predict(rgb, rec.camera.K, depth, detections=det, inst_counts=inst_counts)
         t_image = (time.perf_counter() - t0 - est.timings.get("templates", 0.0)  # (one-time: not the image's)
                    + (max(given.time_s, 0.0) if given is not None else 0.0))
         _count(summary, est, len(det), t_image, max(given.time_s, 0.0) if given is not None else det.time_s)

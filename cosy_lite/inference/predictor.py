@@ -33,7 +33,7 @@ import dataclasses
 import time
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence, TypeAlias
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence, TypeAlias
 
 import numpy as np
 import torch
@@ -56,13 +56,14 @@ from cosy_lite.inference.pose_estimates import TIMING_KEYS, PoseEstimates
 from cosy_lite.inference.settings import InferenceConfig, inference_config, with_refiner
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from cosy_lite.inference.torch_runtime import AUTOCAST_DTYPES, Clock, TimedRenderer, flush_denormals, inference_net, timed_net
+from cosy_lite.inference.vivo import most_confident, select_candidates
 from cosy_lite.nets.appearance_templates import AppearanceTemplates
 
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
 # has rendered crashes the process.
 from cosy_lite.nets.detector import detect
 from cosy_lite.nets.initial_pose import initial_pose_from_boxes
-from cosy_lite.nets.render_and_compare import FineCrops, iterate_poses, refine_and_score
+from cosy_lite.nets.render_and_compare import FineCrops, iterate_poses_scored, refine_and_score
 from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
 from cosy_lite.weights.loaders import PoseModel, load_detector, load_pose_model
 
@@ -387,7 +388,7 @@ class Predictor:
 
     @torch.inference_mode()
     def predict(self, rgb: np.ndarray, K: Any, depth: np.ndarray | None = None, detections: Detections | None = None,
-                obj_ids: Sequence[int] | None = None) -> PoseEstimates:
+                obj_ids: Sequence[int] | None = None, inst_counts: Mapping[int, int] | None = None) -> PoseEstimates:
         """Poses of the objects in one image.
 
         Args:
@@ -395,7 +396,11 @@ class Predictor:
                 unknown), used by ICP (when enabled) only;
             detections: boxes (+ masks for ICP and template starts; boxes only: the boxes stand in), obj_ids,
                 scores; None: run the detector;
-            obj_ids: keep only detections of these objects.
+            obj_ids: keep only detections of these objects;
+            inst_counts: BOP19 ViVo, obj_id -> how many instances to estimate (other objects dropped): each
+                object's ``vivo_candidates x inst_count`` best detections are posed
+                (:func:`~cosy_lite.inference.vivo.select_candidates`) and the ``inst_count`` the refiner is
+                most confident of in its last iteration go on (to ICP, and out).
         Returns: :class:`PoseEstimates` by decreasing score (empty when nothing is detected);
         detections whose box has a side under :data:`~cosy_lite.bop.detections.MIN_BOX_SIZE_PX`
         (or a non-finite corner) are skipped with a RuntimeWarning: no pose from a box of nothing.
@@ -409,6 +414,8 @@ class Predictor:
             detections = self.detect(rgb)
             clock.seconds["detection"] = detections.time_s
         det = self._select(detections, obj_ids, from_detector)
+        if inst_counts is not None:
+            det = select_candidates(det, inst_counts, self.config.vivo_candidates, self.config.vivo_score_ratio)
         if (bad := degenerate_boxes(det)).any():
             warnings.warn(f"Predictor: {int(bad.sum())} detection(s) with a box side under {MIN_BOX_SIZE_PX} px or "
                           f"non-finite skipped (no pose estimated): {describe_boxes(det, bad)}", RuntimeWarning,
@@ -431,8 +438,13 @@ class Predictor:
                           f"detections' masks, but these {len(det)} detections are boxes only: the refiner's poses "
                           "are kept", RuntimeWarning, stacklevel=2)
         with flush_denormals():
-            TCO_coarse, TCO, hypotheses = self._poses(rgb, K, det, clock, verify,
-                                                      given_masks if fits_masks and self.refiner is not None else None)
+            TCO_coarse, TCO, hypotheses, confidence = self._poses(
+                rgb, K, det, clock, verify, given_masks if fits_masks and self.refiner is not None else None)
+        if inst_counts is not None and self.config.vivo_candidates > 1:  # the refiner's choice (else: the best scored)
+            keep = most_confident(det.obj_ids, det.scores if confidence is None else confidence, inst_counts)
+            det, TCO_coarse, TCO = det.select(keep), TCO_coarse[keep], TCO[keep]
+            hypotheses = None if hypotheses is None else hypotheses[keep]
+            given_masks = None if given_masks is None else given_masks[keep]
         icp_results, TCO_before_icp = None, None
         if self.config.icp and depth is not None:
             TCO_before_icp = TCO
@@ -452,8 +464,9 @@ class Predictor:
                              None if given_masks is None else given_masks.clone())
 
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock, verify: bool = False,
-               exact_masks: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
-        """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, and with several template
+               exact_masks: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, the refiner's confidence ``[N]`` in its last
+        iteration (None when none ran: :func:`~cosy_lite.nets.render_and_compare.iterate_poses_scored`), and with several template
         candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose first, then the
         others after their one refiner iteration, or with ``candidate_choice="start"`` as the start
         stage made them (None with one candidate). ``verify``: ICP will verify the hypotheses
@@ -496,15 +509,19 @@ class Predictor:
             steps.append(("refiner", self.refiner, n_refiner))
         TCO = TCO_init
         refined: list[Tensor] = []  # the refiner's poses after each of its iterations
+        confidence = None  # ... and its confidence in the last one
         for role, model, n_iterations in steps:
             net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
             if n_iterations:
                 fine = (FineCrops.of(self.config.refiner_fine_iterations, self.config.refiner_fine_resolution)
                         if role == "refiner" else None)
-                poses = iterate_poses(net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
-                                      self.config.batch_size, model.output, fine=fine,
-                                      first_iteration=1 + self.config.n_refiner_iterations - n_iterations)
-                TCO, refined = poses[-1], poses if role == "refiner" else refined
+                poses, score = iterate_poses_scored(
+                    net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
+                    self.config.batch_size, model.output, fine=fine,
+                    first_iteration=1 + self.config.n_refiner_iterations - n_iterations)
+                TCO = poses[-1]
+                if role == "refiner":
+                    refined, confidence = poses, score.cpu()
             if role == "coarse":
                 TCO_coarse = TCO
         TCO = self._refined_poses(TCO, refined, K, exact_masks, ids, renderer)
@@ -517,7 +534,7 @@ class Predictor:
             hypotheses[at, pick] = hypotheses[at, 0]
             hypotheses[:, 0] = TCO
             hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
-        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses
+        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses, confidence
 
     def _refined_poses(self, TCO: Tensor, refined: list[Tensor], K: Tensor, exact_masks: Tensor | None, ids: list[int],
                        renderer: Renderer) -> Tensor:

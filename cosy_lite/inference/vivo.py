@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Iterable, Mapping
 
 import torch
+from torch import Tensor
 
 from cosy_lite.bop.detections import Detections
 from cosy_lite.bop.io import Target
@@ -31,12 +32,44 @@ def select_top_instances(detections: Detections, inst_counts: Mapping[int, int])
     """Per object of ``inst_counts`` (obj_id -> inst_count) its ``inst_count`` highest-scoring
     detections; other objects dropped. Returned by decreasing score (ties: input order)."""
     order = torch.argsort(detections.scores, descending=True, stable=True).tolist()
-    ids = detections.obj_ids.tolist()
+    keep = _first_per_object(order, detections.obj_ids.tolist(), inst_counts)
+    return detections.select(torch.tensor(keep, dtype=torch.long))
+
+
+def select_candidates(detections: Detections, inst_counts: Mapping[int, int], per_instance: int = 1,
+                      score_ratio: float = 0.0) -> Detections:
+    """Per object of ``inst_counts`` its ``per_instance x inst_count`` highest-scoring detections, those
+    beyond its ``inst_count`` best only when they score at least ``score_ratio`` x its best (so with
+    ``per_instance`` 1, :func:`select_top_instances`); other objects dropped. By decreasing score."""
+    if per_instance < 1:
+        raise ValueError(f"per_instance must be >= 1, got {per_instance}")
+    top = select_top_instances(detections, {o: n * per_instance for o, n in inst_counts.items()})
+    ids, scores = top.obj_ids.tolist(), top.scores.tolist()
+    best: dict[int, float] = {}
+    seen: dict[int, int] = {}
+    keep = []
+    for k, (obj, score) in enumerate(zip(ids, scores)):
+        best.setdefault(obj, score)
+        seen[obj] = seen.get(obj, 0) + 1
+        if seen[obj] <= inst_counts.get(obj, 0) or score >= score_ratio * best[obj]:
+            keep.append(k)
+    return top.select(torch.tensor(keep, dtype=torch.long))
+
+
+def most_confident(obj_ids: Tensor, confidence: Tensor, inst_counts: Mapping[int, int]) -> Tensor:
+    """Indices (ascending) of the estimates to keep: per object its ``inst_count`` of highest
+    ``confidence`` (ties: the earlier one); objects not in ``inst_counts`` keep none."""
+    order = torch.argsort(confidence.double().cpu(), descending=True, stable=True).tolist()
+    return torch.tensor(sorted(_first_per_object(order, obj_ids.tolist(), inst_counts)), dtype=torch.long)
+
+
+def _first_per_object(order: list[int], obj_ids: list[int], inst_counts: Mapping[int, int]) -> list[int]:
+    """The indices of ``order`` (a ranking) kept when each object takes its first ``inst_count``."""
     taken: dict[int, int] = {}
     keep = []
     for k in order:
-        obj = int(ids[k])
+        obj = int(obj_ids[k])
         if taken.get(obj, 0) < inst_counts.get(obj, 0):
             taken[obj] = taken.get(obj, 0) + 1
             keep.append(k)
-    return detections.select(torch.tensor(keep, dtype=torch.long))
+    return keep

@@ -133,70 +133,74 @@ def iterate_poses(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TC
     larger crops, their input depth kept (:class:`FineCrops`), numbered from ``first_iteration``. ``net`` maps [b,6,h,w] ->
     [b,9] (``output="delta"``) or a flow field (``"flow"``); None: what ``net`` says
     (:func:`network_output`). Training validation, the torch predictor and the onnxruntime
-    predictor all iterate here.
+    predictor all iterate here (:func:`iterate_poses_scored`).
 
     Invalid poses (:func:`~cosy_lite.geometry.pose_checks.valid_poses`: non-finite, not a rotation,
     behind the camera) are not rendered again: they keep their value through the remaining iterations.
     """
+    return iterate_poses_scored(net, images, K, TCO_init, obj_ids, points, renderer, n_iterations, crop_resolution,
+                                batch_size, output, fine, first_iteration)[0]
+
+
+NOT_SCORED = -1.0  # the confidence of a pose that was not run (invalid), or of a network without one
+
+
+def iterate_poses_scored(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO_init: Tensor,
+                         obj_ids: Sequence[int], points: Tensor, renderer: Renderer, n_iterations: int,
+                         crop_resolution: Size, batch_size: int = 32, output: str | None = None,
+                         fine: FineCrops | None = None, first_iteration: int = 1) -> tuple[list[Tensor], Tensor]:
+    """:func:`iterate_poses`, and the confidence ``[B]`` float64 of its last iteration: a flow network's mean
+    confidence over the rendered cells at the pose that iteration started from
+    (:func:`~cosy_lite.nets.flow_pose_solver.flow_confidence`; how well the rendering was recognised in the
+    crop); :data:`NOT_SCORED` for a pose not run and for a network without confidence (``"delta"``)."""
     output = output or network_output(net)
     poses, TCO = [], TCO_init
+    score = torch.full((len(TCO_init),), NOT_SCORED, dtype=torch.float64, device=TCO_init.device)
     for i in range(first_iteration, first_iteration + n_iterations):
         is_fine = fine is not None and i in fine.iterations
         size = fine.resolution if fine is not None and is_fine else crop_resolution
         live = valid_poses(TCO).nonzero().flatten()
+        score = torch.full_like(score, NOT_SCORED)
         if len(live) == len(TCO):
-            new = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, size, batch_size, output)
+            new, score = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, size, batch_size, output)
             TCO = keep_depth(TCO, new) if is_fine else new
         elif len(live):
-            new = _iterate_once(net, images[live], K[live], TCO[live], [obj_ids[j] for j in live.tolist()],
-                                points[live], renderer, size, batch_size, output)
+            new, score[live] = _iterate_once(net, images[live], K[live], TCO[live], [obj_ids[j] for j in live.tolist()],
+                                             points[live], renderer, size, batch_size, output)
             new = keep_depth(TCO[live], new) if is_fine else new
             TCO = TCO.clone()
             TCO[live] = new.to(TCO.dtype)
         poses.append(TCO)
-    return poses
+    return poses, score
 
 
 def _iterate_once(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int],
-                  points: Tensor, renderer: Renderer, crop_resolution: Size, batch_size: int, output: str) -> Tensor:
-    """One update of every pose ``TCO [B,4,4]``, ``batch_size`` crops per network call."""
-    def step(sl: slice) -> tuple[Tensor]:
+                  points: Tensor, renderer: Renderer, crop_resolution: Size, batch_size: int,
+                  output: str) -> tuple[Tensor, Tensor]:
+    """One update of every pose ``TCO [B,4,4]``, ``batch_size`` crops per network call, and each one's
+    confidence ``[B]`` float64 (:func:`iterate_poses_scored`)."""
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
+    from cosy_lite.nets.flow_pose_solver import flow_confidence
+
+    def step(sl: slice) -> tuple[Tensor, Tensor]:
         inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
-        return (updated_poses(TCO[sl], inp, net(inp.images), output),)
+        out = net(inp.images)
+        score = (flow_confidence(inp.depth, out, FlowPoseNet.stride) if output == "flow" else
+                 torch.full((len(out),), NOT_SCORED, dtype=torch.float64, device=out.device))
+        return updated_poses(TCO[sl], inp, out, output), score
 
     out = _by_batch(step, len(TCO), batch_size)
-    return torch.cat([o[0] for o in out]) if out else TCO
-
-
-NOT_SCORED = -1.0  # the confidence of a candidate that was not run (its pose is invalid)
+    if not out:
+        return TCO, torch.zeros(0, dtype=torch.float64, device=TCO.device)
+    return torch.cat([o[0] for o in out]), torch.cat([o[1] for o in out]).double().to(TCO.device)
 
 
 def refine_and_score(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int],
                      points: Tensor, renderer: Renderer, crop_resolution: Size,
                      batch_size: int = 32) -> tuple[Tensor, Tensor]:
     """One iteration of a flow network from ``TCO [B,4,4]`` (arguments as :func:`iterate_poses`):
-    (poses ``[B,4,4]``, confidence ``[B]`` float64: the network's mean confidence over the rendered
-    cells, :func:`~cosy_lite.nets.flow_pose_solver.flow_confidence`). Used to rank candidate start
-    poses. Invalid poses are not run: they keep their value and score :data:`NOT_SCORED`."""
-    from cosy_lite.nets.flow_pose_net import FlowPoseNet
-    from cosy_lite.nets.flow_pose_solver import flow_confidence
-
-    refined = TCO.clone()
-    score = torch.full((len(TCO),), NOT_SCORED, dtype=torch.float64, device=TCO.device)
-    live = valid_poses(TCO).nonzero().flatten()
-    if not len(live):
-        return refined, score
-    T, ids = TCO, list(obj_ids)
-    if len(live) < len(TCO):  # (all live: no copies, ``images`` may be one image expanded)
-        images, K, points, T = images[live], K[live], points[live], TCO[live]
-        ids = [obj_ids[i] for i in live.tolist()]
-
-    def step(sl: slice) -> tuple[Tensor, Tensor]:
-        inp = make_inputs(images[sl], K[sl], T[sl], ids[sl], points[sl], renderer, crop_resolution)
-        out = net(inp.images)
-        return updated_poses(T[sl], inp, out, "flow"), flow_confidence(inp.depth, out, FlowPoseNet.stride)
-
-    out = _by_batch(step, len(T), batch_size)
-    refined[live] = torch.cat([o[0] for o in out]).to(refined.dtype)
-    score[live] = torch.cat([o[1] for o in out]).double()
-    return refined, score
+    (poses ``[B,4,4]``, confidence ``[B]`` float64, :func:`iterate_poses_scored`). Used to rank candidate
+    start poses. Invalid poses are not run: they keep their value and score :data:`NOT_SCORED`."""
+    poses, score = iterate_poses_scored(net, images, K, TCO, obj_ids, points, renderer, 1, crop_resolution,
+                                        batch_size, "flow")
+    return poses[0], score
