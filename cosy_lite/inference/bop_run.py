@@ -10,7 +10,8 @@ object its ``inst_count`` best detections (with the setting ``vivo_candidates`` 
 :mod:`~cosy_lite.inference.vivo`) -> poses -> one CSV row per valid estimate, ranked by score.
 ``time`` is the wall time of the image from detection to the last pose (file reading excluded),
 plus the file's own detection time for a detections JSON (BOP: detection time counts); oracle
-detections cost nothing. Invalid poses (NaN, not a rotation, behind the camera) are never written: they are counted and reported.
+detections cost nothing. Invalid poses (NaN, not a rotation, behind the camera) are never written:
+they are counted and reported.
 When the predictor's detector runs, all its detections (before the per-object selection) are also
 written as BOP22 ``METHOD_DATASET-SPLIT.json`` beside the CSV: the input of the BOP 2D tasks'
 evaluation (``cosy-lite eval --task 2d-detection | 2d-segmentation``).
