@@ -75,8 +75,8 @@ class InferenceConfig:
     # BOP19 ViVo (Predictor.predict with inst_counts: cosy-lite infer's 6d-localization): pose up to this many
     # detections per target instance, the best scored of its object that score at least vivo_score_ratio x its best,
     # and keep the inst_count the refiner is most confident of in its last iteration (cosy_lite.inference.vivo); only
-    # those go on to ICP. 1: the inst_count best scored. The ycbvsynth set: 2 (the detector's best is on the wrong
-    # object for 7 % of the targets; chosen on a second generated split, bench/RESULTS.md, session 31).
+    # those go on to ICP. 1: the inst_count best scored. The ycbvsynth set: 2 (for 7 % of the targets the detector's
+    # best is wrong and another right; chosen on a second generated split, bench/RESULTS.md, session 31).
     vivo_candidates: int = 1
     vivo_score_ratio: float = 0.3
     icp: bool = False  # refine with the depth image (point-to-plane ICP) when one is given

@@ -156,17 +156,18 @@ def iterate_poses_scored(net: Callable[[Tensor], Tensor], images: Tensor, K: Ten
     output = output or network_output(net)
     poses, TCO = [], TCO_init
     score = torch.full((len(TCO_init),), NOT_SCORED, dtype=torch.float64, device=TCO_init.device)
-    for i in range(first_iteration, first_iteration + n_iterations):
+    last = first_iteration + n_iterations - 1
+    for i in range(first_iteration, last + 1):
         is_fine = fine is not None and i in fine.iterations
         size = fine.resolution if fine is not None and is_fine else crop_resolution
+        scored = output == "flow" and i == last  # (only the last iteration's confidence is returned)
         live = valid_poses(TCO).nonzero().flatten()
-        score = torch.full_like(score, NOT_SCORED)
         if len(live) == len(TCO):
-            new, score = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, size, batch_size, output)
+            new, score = _iterate_once(net, images, K, TCO, obj_ids, points, renderer, size, batch_size, output, scored)
             TCO = keep_depth(TCO, new) if is_fine else new
         elif len(live):
             new, score[live] = _iterate_once(net, images[live], K[live], TCO[live], [obj_ids[j] for j in live.tolist()],
-                                             points[live], renderer, size, batch_size, output)
+                                             points[live], renderer, size, batch_size, output, scored)
             new = keep_depth(TCO[live], new) if is_fine else new
             TCO = TCO.clone()
             TCO[live] = new.to(TCO.dtype)
@@ -176,16 +177,16 @@ def iterate_poses_scored(net: Callable[[Tensor], Tensor], images: Tensor, K: Ten
 
 def _iterate_once(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int],
                   points: Tensor, renderer: Renderer, crop_resolution: Size, batch_size: int,
-                  output: str) -> tuple[Tensor, Tensor]:
-    """One update of every pose ``TCO [B,4,4]``, ``batch_size`` crops per network call, and each one's
-    confidence ``[B]`` float64 (:func:`iterate_poses_scored`)."""
+                  output: str, scored: bool = False) -> tuple[Tensor, Tensor]:
+    """One update of every pose ``TCO [B,4,4]``, ``batch_size`` crops per network call, and with ``scored``
+    (a flow network) each one's confidence ``[B]`` float64 (:func:`iterate_poses_scored`), else :data:`NOT_SCORED`."""
     from cosy_lite.nets.flow_pose_net import FlowPoseNet
     from cosy_lite.nets.flow_pose_solver import flow_confidence
 
     def step(sl: slice) -> tuple[Tensor, Tensor]:
         inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
         out = net(inp.images)
-        score = (flow_confidence(inp.depth, out, FlowPoseNet.stride) if output == "flow" else
+        score = (flow_confidence(inp.depth, out, FlowPoseNet.stride) if scored else
                  torch.full((len(out),), NOT_SCORED, dtype=torch.float64, device=out.device))
         return updated_poses(TCO[sl], inp, out, output), score
 
