@@ -218,3 +218,20 @@ def _refiner_file(root, path):
     task = PoseTask(cfg, root)
     save_checkpoint(path, Checkpoint("refiner", task.build_model(load_pretrained=False).state_dict(), {}, 0,
                                      meta=task.checkpoint_meta()))
+
+
+def test_the_frozen_descriptor_runs_batchnorm_folded_and_describes_alike():
+    from cosy_lite.nets.appearance_templates import CROP_SIZE, AppearanceDescriptor
+    from cosy_lite.nets.batchnorm_folding import batchnorm_folded
+
+    plain = AppearanceDescriptor()  # ImageNet weights: trained BatchNorm statistics
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # folded outputs equal: no fallback to the plain network
+        folded = batchnorm_folded(plain, (2, 3, CROP_SIZE, CROP_SIZE))
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in plain.modules()) > 20  # the plain one is untouched
+    crops = torch.rand(4, 3, CROP_SIZE, CROP_SIZE)
+    with torch.no_grad():
+        a, b = plain(crops), folded(crops)
+    assert float((a * b).sum(dim=1).min()) > 1.999  # unit-norm cell descriptors (two maps): the same to 1e-3
+    torch.testing.assert_close(b, a, rtol=0, atol=1e-4)

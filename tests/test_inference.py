@@ -4,7 +4,9 @@ detections, invalid poses never written, clear errors for bad checkpoints."""
 
 from __future__ import annotations
 
+import copy
 import json
+import warnings
 from collections import defaultdict
 from dataclasses import asdict
 from pathlib import Path
@@ -356,6 +358,66 @@ def test_inference_net_folds_batchnorm_without_changing_outputs():
         ref, out = net(x), fast(x.contiguous(memory_format=torch.channels_last))
     assert ref.abs().max() > 1e-3
     torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
+
+
+def _trained_statistics(net: nn.Module) -> None:
+    """BatchNorm statistics of a trained network, not the identity of a fresh one."""
+    for m in net.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+
+
+def test_inference_net_folds_the_flow_refiners_timm_batchnorm_act_layers():
+    from timm.layers import BatchNormAct2d
+
+    from cosy_lite.inference.torch_runtime import inference_net
+    from cosy_lite.nets.flow_pose_net import FlowPoseNet
+
+    torch.manual_seed(0)
+    net = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
+    _trained_statistics(net)
+    n_act = sum(isinstance(m, BatchNormAct2d) for m in net.modules())
+    assert n_act > 10  # the EfficientNet trunk's norms carry its activations
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # folded outputs equal: no fallback
+        fast = inference_net(net, torch.device("cpu"), example_shape=(2, 6, 64, 96))
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in fast.modules())
+    x = torch.rand(3, 6, 64, 96)
+    with torch.inference_mode():
+        ref, out = net(x), fast(x.contiguous(memory_format=torch.channels_last))
+    assert ref.abs().max() > 1e-2
+    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
+
+
+class _NormBeforeConv(nn.Module):
+    """A conv registered before its norm, but the norm runs first: folding by registration order is wrong."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = nn.Conv2d(6, 6, 3, padding=1)
+        self.norm = nn.BatchNorm2d(6)
+
+    def forward(self, x):
+        return self.conv(self.norm(x)).mean(dim=(2, 3))
+
+
+def test_inference_net_keeps_a_network_whose_folded_copy_differs():
+    from cosy_lite.inference.torch_runtime import inference_net
+    from cosy_lite.nets.batchnorm_folding import fold_batchnorm
+
+    torch.manual_seed(0)
+    net = _NormBeforeConv().eval()
+    _trained_statistics(net)
+    assert fold_batchnorm(copy.deepcopy(net)) == 1  # registration order alone would fold it
+    with pytest.warns(RuntimeWarning, match="BatchNorm folded gives other outputs"):
+        kept = inference_net(net, torch.device("cpu"), example_shape=(2, 6, 8, 8))
+    assert any(isinstance(m, nn.BatchNorm2d) for m in kept.modules())
+    x = torch.rand(2, 6, 8, 8)
+    with torch.inference_mode():
+        torch.testing.assert_close(kept(x), net(x))
 
 
 def test_valid_poses_and_orthonormalise():

@@ -57,7 +57,7 @@ from cosy_lite.inference.settings import InferenceConfig, inference_config, with
 from cosy_lite.inference.starts import STARTS, TEMPLATE_STARTS
 from cosy_lite.inference.torch_runtime import AUTOCAST_DTYPES, Clock, TimedRenderer, flush_denormals, inference_net, timed_net
 from cosy_lite.inference.vivo import most_confident, select_candidates
-from cosy_lite.nets.appearance_templates import AppearanceTemplates
+from cosy_lite.nets.appearance_templates import CROP_SIZE, AppearanceTemplates
 
 # torchvision at import, before any rendering: importing it (-> triton's LLVM) after Mesa's llvmpipe
 # has rendered crashes the process.
@@ -95,8 +95,10 @@ def _as_K(K: Any) -> Tensor:
     return K
 
 
-def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer: MeshRenderer) -> nn.Module:
-    """The coarse scorer network of ``path``, checked against the pipeline it joins."""
+def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer: MeshRenderer,
+                 fuse_bn: bool = True) -> nn.Module:
+    """The coarse scorer network of ``path``, checked against the pipeline it joins, as
+    :func:`~cosy_lite.inference.torch_runtime.inference_net` makes it (BatchNorm folded if ``fuse_bn``)."""
     from cosy_lite.weights.loaders import load_scorer
 
     if start != "appearance":
@@ -108,7 +110,7 @@ def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer:
     if shading != scorer.shading:
         raise SetupError(f"{path}: the scorer was trained against templates rendered with {scorer.shading!r} shading, "
                          f"but this pipeline renders with {shading!r} (the refiner's render_shading)")
-    return scorer.net
+    return inference_net(scorer.net, torch.device("cpu"), True, fuse_bn, (2, 3, CROP_SIZE, CROP_SIZE))
 
 
 def check_fine_crops(config: InferenceConfig, refiner: PoseModel | None) -> None:
@@ -178,8 +180,8 @@ class Predictor:
         self._nets: dict[str, nn.Module | Callable[[Tensor], Tensor]] = {}
         for role, m in (("coarse", coarse), ("refiner", refiner)):
             if m is not None:
-                self._nets[role] = (inference_net(m.net, self.device, config.channels_last, config.fuse_bn)
-                                    if isinstance(m.net, nn.Module) else m.net)
+                self._nets[role] = (inference_net(m.net, self.device, config.channels_last, config.fuse_bn,
+                                                  (2, 6, *m.crop_resolution)) if isinstance(m.net, nn.Module) else m.net)
                 missing = sorted(set(self.objects.obj_ids) - set(m.obj_ids))
                 if missing:
                     raise SetupError(f"{m.describe()}: the {m.kind} model was not trained on obj_ids {missing} "
@@ -235,7 +237,7 @@ class Predictor:
         objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(coarse_model, refiner_model))
         det = None if detector is None else load_detector(detector, device)
-        scorer_net = None if scorer is None else _load_scorer(scorer, config.start, ids, renderer)
+        scorer_net = None if scorer is None else _load_scorer(scorer, config.start, ids, renderer, config.fuse_bn)
         templates = start_templates(config.start, meshes, objects, renderer, templates_cache, scorer_net)
         return cls(coarse_model, refiner_model, objects, renderer, det, config, syms, device, templates)
 

@@ -84,7 +84,7 @@ class InferenceConfig:
     precision: str = "fp32"  # a key of PRECISIONS
     batch_size: int = 32  # crops per network call
     channels_last: bool = True  # torch networks in channels-last memory (same numbers, faster on CPU)
-    fuse_bn: bool = True  # BatchNorm folded into the convolutions (torch)
+    fuse_bn: bool = True  # BatchNorm folded into the convolutions (torch: the pose networks and the coarse scorer)
 
     def __post_init__(self) -> None:
         checks = (("start", self.start in STARTS, f"one of {list(STARTS)}"),

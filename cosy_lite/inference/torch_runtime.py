@@ -2,7 +2,7 @@
 
 * :class:`Clock` adds up seconds per stage (waiting for the device first); :class:`TimedRenderer`
   and :func:`timed_net` put the renderer's and the networks' calls under their stage.
-* :func:`inference_net`: a copy of a pose network for inference (BatchNorm folded, channels-last).
+* :func:`inference_net`: a copy of a network for inference (BatchNorm folded, channels-last).
 * :func:`flush_denormals`: denormal floats flushed to zero around a call (CPU).
 """
 
@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
 from torch import Tensor, nn
+
+from cosy_lite.nets.batchnorm_folding import batchnorm_folded
 
 if TYPE_CHECKING:
     from cosy_lite.render.renderer import Renderer
@@ -81,20 +83,16 @@ def timed_net(net: nn.Module | Callable[[Tensor], Tensor], clock: Clock, channel
     return run
 
 
-def inference_net(net: nn.Module, device: torch.device, channels_last: bool = True, fuse_bn: bool = True) -> nn.Module:
-    """A copy of a pose network for inference on ``device``, in eval mode: BatchNorm folded into the
-    preceding convolutions of ``net.backbone.net`` (``torch.fx``; same outputs to ~1e-6 relative,
-    ~1.2-1.5x faster on CPU), optionally channels-last. The given module is left as it is."""
+def inference_net(net: nn.Module, device: torch.device, channels_last: bool = True, fuse_bn: bool = True,
+                  example_shape: tuple[int, ...] | None = None) -> nn.Module:
+    """A copy of a network for inference on ``device``, in eval mode: BatchNorm folded into the
+    convolutions (:func:`~cosy_lite.nets.batchnorm_folding.batchnorm_folded`), optionally channels-last.
+    The given module is left as it is. ``example_shape`` (e.g. a pose network's ``[2,6,h,w]``): the
+    folded copy is kept only if it gives the unfolded copy's outputs on a random input of that shape
+    (to 1e-3 of their largest magnitude), else the unfolded copy runs, with a warning."""
     out = copy.deepcopy(net).eval().to(device)
-    parent = getattr(out, "backbone", None)
-    backbone = getattr(parent, "net", None)
-    if fuse_bn and isinstance(parent, nn.Module) and isinstance(backbone, nn.Module):
-        from torch.fx.experimental.optimization import fuse
-
-        try:
-            parent.net = fuse(backbone)
-        except Exception:  # noqa: BLE001 - a backbone torch.fx cannot trace stays unfused (only slower)
-            pass
+    if fuse_bn:
+        out = batchnorm_folded(out, example_shape)
     return out.to(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
 
 

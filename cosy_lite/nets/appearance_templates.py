@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from cosy_lite.nets.batchnorm_folding import batchnorm_folded
 from cosy_lite.nets.silhouette_templates import BOX_MARGIN, TEMPLATE_SIZE, MaskView, SilhouetteTemplates, file_key, mask_boxes
 
 if TYPE_CHECKING:
@@ -108,7 +109,8 @@ class AppearanceTemplates:
                  scorer: nn.Module | None = None):
         self.silhouettes = silhouettes
         self.renderer = renderer
-        self.descriptor = descriptor or AppearanceDescriptor()
+        # built here, the frozen descriptor runs BatchNorm folded: the same descriptors, the templates described faster
+        self.descriptor = descriptor or batchnorm_folded(AppearanceDescriptor(), (2, 3, CROP_SIZE, CROP_SIZE))
         self.scorer = None if scorer is None else scorer.eval()
         # an AppearanceScorer's iou_weight is an nn.Parameter
         self.iou_weight = float(iou_weight) if scorer is None else float(cast(Tensor, scorer.iou_weight).detach())
