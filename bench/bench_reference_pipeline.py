@@ -17,9 +17,11 @@ inst_counts)``: its ``inst_count`` best per object, or with ``vivo_candidates`` 
 ``inst_count`` best, of which the most confident go on).
 
 The settings of the pipeline issue 28 was filed on (964259a: silhouette templates, 5 candidates
-ranked by the refiner's confidence, ICP of the chosen one only), in today's code: ``--variant filed
-start=templates n_candidates=5 candidate_choice=confidence icp_settings.verify_candidates=false``
-(bench/RESULTS.md, session 17, also has that commit's own code timed).
+ranked by the refiner's confidence, 4 iterations on 144x192 crops, ICP of the chosen one only, one
+detection per instance, masks above 0.5), in today's code: ``--variant filed start=templates
+n_candidates=5 candidate_choice=confidence icp_settings.verify_candidates=false mask_threshold=0.5
+vivo_candidates=1 n_refiner_iterations=4 refiner_fine_iterations=[] refiner_depth_drift=[]``
+(bench/RESULTS.md: sessions 17 and 32 also timed that commit's own code and set).
 """
 
 from __future__ import annotations
