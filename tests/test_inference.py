@@ -338,28 +338,6 @@ def test_the_detector_feeds_predict_and_the_vivo_run(tiny_synth_root, ckpts, tmp
         assert len({e.time for e in est}) == 1
 
 
-def test_inference_net_folds_batchnorm_without_changing_outputs():
-    from cosy_lite.inference.predictor import inference_net
-    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
-
-    torch.manual_seed(0)
-    net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=CROP)).eval()
-    nn.init.normal_(net.head.weight, std=0.01)
-    for m in net.modules():  # statistics of a trained network, not the identity of a fresh one
-        if isinstance(m, nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.1, 0.1)
-            m.running_var.uniform_(0.5, 2.0)
-            m.weight.data.uniform_(0.5, 1.5)
-    fast = inference_net(net, torch.device("cpu"))
-    assert not any(isinstance(m, nn.BatchNorm2d) for m in fast.modules())
-    assert any(isinstance(m, nn.BatchNorm2d) for m in net.modules())  # the given network is untouched
-    x = torch.rand(3, 6, *CROP)
-    with torch.inference_mode():
-        ref, out = net(x), fast(x.contiguous(memory_format=torch.channels_last))
-    assert ref.abs().max() > 1e-3
-    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
-
-
 def _trained_statistics(net: nn.Module) -> None:
     """BatchNorm statistics of a trained network, not the identity of a fresh one."""
     for m in net.modules():
@@ -368,6 +346,24 @@ def _trained_statistics(net: nn.Module) -> None:
             m.running_var.uniform_(0.5, 2.0)
             m.weight.data.uniform_(0.5, 1.5)
             m.bias.data.uniform_(-0.2, 0.2)
+
+
+def test_inference_net_folds_batchnorm_without_changing_outputs():
+    from cosy_lite.inference.predictor import inference_net
+    from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
+
+    torch.manual_seed(0)
+    net = build_pose_net(PoseNetConfig(backbone="resnet18", crop_resolution=CROP)).eval()
+    nn.init.normal_(net.head.weight, std=0.01)
+    _trained_statistics(net)
+    fast = inference_net(net, torch.device("cpu"))
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in fast.modules())
+    assert any(isinstance(m, nn.BatchNorm2d) for m in net.modules())  # the given network is untouched
+    x = torch.rand(3, 6, *CROP)
+    with torch.inference_mode():
+        ref, out = net(x), fast(x.contiguous(memory_format=torch.channels_last))
+    assert ref.abs().max() > 1e-3
+    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
 
 
 def test_inference_net_folds_the_flow_refiners_timm_batchnorm_act_layers():
