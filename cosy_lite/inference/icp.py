@@ -4,14 +4,14 @@ Per object (the objects of an image are rendered in a few batched calls, by wind
 
 1. window: the projected box of the model's 8 bounding-box corners at the current pose, united
    with the box of the object's mask, widened by ``cfg.window_margin`` px, clipped to the image;
-2. source: the model's depth rendered at the current pose in that window only (``K_crop`` = ``K``
-   with ``cx -= x0, cy -= y0``, 1:1 scale), back-projected to camera-frame points: the visible
-   model surface, which moves with the pose. Rendered pixels hidden by something else (outside the
+2. pixels: every :func:`pixel_stride`-th one of the window, about 2 per voxel side at the
+   object's depth, so near objects cost no more than far ones;
+3. source: the model's depth rendered at the current pose at those pixels only (the window's
+   intrinsics, scaled by 1 / stride), back-projected to camera-frame points: the visible model
+   surface, which moves with the pose. Rendered pixels hidden by something else (outside the
    mask, measured depth in front by more than ``cfg.occlusion_margin``) are dropped;
-3. target: the measured depth inside the mask (and the window), back-projected; normals estimated
-   with a hybrid k-d tree search;
-4. both voxel-downsampled (pixels first taken every :func:`pixel_stride` px, about 2 per voxel
-   side at the object's depth, so near objects cost no more than far ones); optionally the source
+4. target: the measured depth at those pixels inside the mask, back-projected; normals estimated
+   with a hybrid k-d tree search; both voxel-downsampled; optionally the source
    is first moved along the object's viewing ray by the median depth difference (robust depth
    pre-alignment); then point-to-plane ICP with a robust kernel over a coarse -> fine schedule
    of correspondence distances, in the camera frame moved to the object origin (turns about the
@@ -23,7 +23,7 @@ Per object (the objects of an image are rendered in a few batched calls, by wind
    fitness / inlier RMSE fail their limits (all off by default), or
 6. (``check_agreement``, default) its rendered depth agrees with the measured depth less than its
    start's (:func:`depth_agreement`: the VSD criterion with the mask standing in for the unknown GT;
-   one more batched render, of the results).
+   one more batched render, of the results, both compared at the pixels of step 2).
 
 Units: metres, depth 0 (or non-finite) = no measurement. Pixel convention as the renderer: pixel
 (row r, column c) is the ray through ``(u, v) = (c + 0.5, r + 0.5)``. Nothing outside the windows
@@ -61,7 +61,10 @@ class IcpConfig:
     """
 
     max_correspondence_distances: list[float] = field(default_factory=lambda: [0.04, 0.02, 0.01, 0.005])  # m, per stage
-    iterations: list[int] = field(default_factory=lambda: [10, 10, 10, 10])  # ICP iterations per stage
+    iterations: list[int] = field(default_factory=lambda: [10, 10, 10, 10])  # ICP iterations per stage, at most
+    # a stage ends early when fitness and inlier RMSE change by less than this fraction in an iteration
+    # (Open3D's relative_fitness / relative_rmse); 1e-4 against 1e-6: ICP 11-15 % faster at the same AR (bench/RESULTS.md)
+    relative_tolerance: float = 1e-4
     robust_kernel: str = "tukey"  # key of ROBUST_KERNELS
     robust_k: float | None = None  # kernel scale (m); None: each stage's correspondence distance
     voxel_size: float = 0.004  # m, voxel grid of both clouds
@@ -98,6 +101,8 @@ class IcpConfig:
             raise ValueError(f"IcpConfig.robust_kernel: unknown {self.robust_kernel!r}; known: {sorted(ROBUST_KERNELS)}")
         if min(self.max_correspondence_distances) <= 0 or self.voxel_size <= 0 or self.normal_radius <= 0:
             raise ValueError("IcpConfig: distances, voxel_size and normal_radius must be > 0")
+        if not 0 <= self.relative_tolerance < 1:
+            raise ValueError(f"IcpConfig.relative_tolerance must be in [0, 1), got {self.relative_tolerance}")
 
 
 @dataclass
@@ -218,12 +223,15 @@ def _inputs(TCO: Any, K: Any, depth: Any, masks: Any, obj_ids: Sequence[int]) ->
 
 
 def _render_windows(renderer: MeshRenderer, obj_ids: Sequence[int], TCO: np.ndarray, K: np.ndarray,
-                    windows: Mapping[int, tuple[int, int, int, int]], todo: list[int]) -> list[np.ndarray]:
-    """Model depth of objects ``todo`` in their windows (x0, y0, x1, y1): per object an array whose
-    top-left ``[h,w]`` part is its window. Windows of similar size share a batched render at their
-    largest size (a window's canvas is at most twice its own area): one batch at the largest window's
-    size drew 3.5x the windows' pixels on the demo's images."""
-    size = {i: (windows[i][3] - windows[i][1], windows[i][2] - windows[i][0]) for i in todo}
+                    windows: Mapping[int, tuple[int, int, int, int]], todo: list[int],
+                    strides: Mapping[int, int] | None = None) -> list[np.ndarray]:
+    """Model depth of objects ``todo`` in their windows (x0, y0, x1, y1), every ``strides[i]``-th
+    pixel (default 1): per object an array whose top-left part of :func:`_strided_shape` is its
+    window, sampled as ``depth[y0:y1:s, x0:x1:s]`` would be. Windows of similar size share a batched
+    render at their largest size (a window's canvas is at most twice its own area): one batch at the
+    largest window's size drew 3.5x the windows' pixels on the demo's images."""
+    step = {i: 1 if strides is None else int(strides[i]) for i in todo}
+    size = {i: _strided_shape(windows[i], step[i]) for i in todo}
     groups: list[list[int]] = []
     canvas = (0, 0)
     for i in sorted(todo, key=lambda i: size[i][0] * size[i][1], reverse=True):
@@ -239,12 +247,28 @@ def _render_windows(renderer: MeshRenderer, obj_ids: Sequence[int], TCO: np.ndar
     for group in groups:
         h = max(size[i][0] for i in group)
         w = max(size[i][1] for i in group)
-        K_crops = np.repeat(K[None], len(group), axis=0)
-        K_crops[:, 0, 2] -= [windows[i][0] for i in group]
-        K_crops[:, 1, 2] -= [windows[i][1] for i in group]
-        depth = renderer.render([obj_ids[i] for i in group], TCO[group], K_crops, (h, w), depth_only=True).depth
+        depth = renderer.render([obj_ids[i] for i in group], TCO[group],
+                                np.stack([_window_intrinsics(K, windows[i], step[i]) for i in group]), (h, w),
+                                depth_only=True).depth
         out.update(zip(group, depth))
     return [out[i] for i in todo]
+
+
+def _strided_shape(window: tuple[int, int, int, int], stride: int) -> tuple[int, int]:
+    """(rows, columns) of ``image[y0:y1:stride, x0:x1:stride]``."""
+    x0, y0, x1, y1 = window
+    return -(-(y1 - y0) // stride), -(-(x1 - x0) // stride)
+
+
+def _window_intrinsics(K: np.ndarray, window: tuple[int, int, int, int], stride: int) -> np.ndarray:
+    """Intrinsics whose pixel (r, c) is the ray of the image's pixel ``(y0 + stride r, x0 + stride c)``
+    (rays through pixel centres: ``u = c + 0.5``)."""
+    x0, y0 = window[:2]
+    Kw = np.array(K, dtype=np.float64)
+    Kw[:2, :2] /= stride
+    Kw[0, 2] = (K[0, 2] - x0 - 0.5) / stride + 0.5
+    Kw[1, 2] = (K[1, 2] - y0 - 0.5) / stride + 0.5
+    return Kw
 
 
 def _check_inputs(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, masks: np.ndarray, obj_ids: Sequence[int]) -> None:
@@ -306,7 +330,8 @@ def refine_poses_icp(
             if windows[i] is None:  # (not with a mask inside the image: its box is part of the window)
                 results[i] = IcpResult(TCO[i].copy(), False, "no image window around the object")
     todo = {i: w for i, w in enumerate(windows) if w is not None}
-    rendered = _render_windows(renderer, obj_ids, TCO, K, todo, list(todo)) if todo else []
+    strides = {i: pixel_stride(cfg.voxel_size, K, TCO[i, 2, 3]) for i in todo}  # the pixels ICP samples
+    rendered = _render_windows(renderer, obj_ids, TCO, K, todo, list(todo), strides) if todo else []
     render_share = (time.perf_counter() - t_start) / max(len(todo), 1)
     refined: dict[int, IcpResult] = {}
     for j, (i, window) in enumerate(todo.items()):
@@ -315,27 +340,27 @@ def refine_poses_icp(
         refined[i].timings["render"] = render_share
     done = [r if r is not None else refined[i] for i, r in enumerate(results)]
     if cfg.check_agreement:
-        _check_agreement(done, {i: rendered[j] for j, i in enumerate(todo)}, windows, TCO, K, depth, masks,
+        _check_agreement(done, {i: rendered[j] for j, i in enumerate(todo)}, strides, windows, TCO, K, depth, masks,
                          renderer, obj_ids, cfg)
     for r in refined.values():
         r.seconds = sum(r.timings.values())
     return done
 
 
-def _check_agreement(results: list, rendered: dict[int, np.ndarray], windows: list, TCO: np.ndarray, K: np.ndarray,
-                     depth: np.ndarray, masks: np.ndarray, renderer: MeshRenderer, obj_ids: Sequence[int],
-                     cfg: IcpConfig) -> None:
+def _check_agreement(results: list, rendered: dict[int, np.ndarray], strides: Mapping[int, int], windows: list,
+                     TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, masks: np.ndarray, renderer: MeshRenderer,
+                     obj_ids: Sequence[int], cfg: IcpConfig) -> None:
     """Set each result's ``agreement`` and reject, in place, an accepted result whose depth agrees
-    less than its start's (the starts' renders are those ICP made; the results get batched renders)."""
+    less than its start's (the starts' renders are those ICP made, every ``strides[i]``-th pixel; the
+    results get batched renders, sampled alike)."""
     t0 = time.perf_counter()
     start = np.zeros(len(results))
     for i, r in rendered.items():
-        x0, y0, x1, y1 = windows[i]
-        start[i] = _window_agreement(r[: y1 - y0, : x1 - x0], depth[y0:y1, x0:x1], masks[i, y0:y1, x0:x1],
-                                     cfg.agreement_tolerance)
+        start[i] = _window_agreement(r, depth, masks[i], windows[i], strides[i], cfg.agreement_tolerance)
     moved = [i for i, r in enumerate(results) if r.accepted]
     after = dict(zip(moved, depth_agreement(np.stack([results[i].TCO for i in moved]), K, depth, masks[moved], renderer,
-                                            [obj_ids[i] for i in moved], cfg.agreement_tolerance, cfg.window_margin)
+                                            [obj_ids[i] for i in moved], cfg.agreement_tolerance, cfg.window_margin,
+                                            cfg.voxel_size)
                      if moved else []))
     for i, r in enumerate(results):
         if i in after and after[i] < start[i]:
@@ -349,10 +374,15 @@ def _check_agreement(results: list, rendered: dict[int, np.ndarray], windows: li
             results[i].timings["agreement"] = share
 
 
-def _window_agreement(rendered: np.ndarray, measured: np.ndarray, in_mask: np.ndarray, tolerance: float) -> float:
-    """:func:`depth_agreement` of one window: rendered and measured depth [h,w] (m, 0 = none), mask [h,w]."""
-    r = np.asarray(rendered, dtype=np.float64)
-    m = np.asarray(measured, dtype=np.float64)
+def _window_agreement(rendered: np.ndarray, depth: np.ndarray, mask: np.ndarray, window: tuple[int, int, int, int],
+                      stride: int, tolerance: float) -> float:
+    """:func:`depth_agreement` in one window, every ``stride``-th pixel: ``rendered`` as
+    :func:`_render_windows` gives it, the image's measured ``depth`` [H,W] (m, 0 = none) and ``mask`` [H,W]."""
+    x0, y0, x1, y1 = window
+    h, w = _strided_shape(window, stride)
+    r = np.asarray(rendered[:h, :w], dtype=np.float64)
+    m = np.asarray(depth[y0:y1:stride, x0:x1:stride], dtype=np.float64)
+    in_mask = mask[y0:y1:stride, x0:x1:stride]
     known = (m > 0) & np.isfinite(m)
     drawn = r > 0
     seen = drawn & (~known | (r <= m + tolerance))
@@ -363,6 +393,7 @@ def _window_agreement(rendered: np.ndarray, measured: np.ndarray, in_mask: np.nd
 def depth_agreement(
     TCO: np.ndarray, K: np.ndarray, depth_measured: np.ndarray, masks: np.ndarray,
     renderer: MeshRenderer, obj_ids: Sequence[int], tolerance: float = 0.02, window_margin: int = 16,
+    sample_spacing: float | None = None,
 ) -> np.ndarray:
     """``[N]`` in [0, 1]: how well each pose explains its object's mask and measured depth.
 
@@ -374,6 +405,9 @@ def depth_agreement(
     the mask unexplained, or is turned so that its depth disagrees scores lower: the VSD criterion
     with the mask standing in for the unknown GT. 0 for an empty mask or a pose behind the camera.
     Args as :func:`refine_poses_icp` (masks [N,H,W] bool); windows of similar size share one render call.
+    ``sample_spacing`` (m): only every :func:`pixel_stride` px is compared, the pixels ICP samples with
+    that voxel size at the object's depth (about 2 per voxel side; a quarter of the pixels at 4 mm and
+    1 m with YCB-V's camera); None: every pixel.
     """
     TCO, K, depth, masks, obj_ids = _inputs(TCO, K, depth_measured, masks, obj_ids)
     H, W = depth.shape
@@ -388,11 +422,10 @@ def depth_agreement(
     if not windows:
         return scores
     todo = sorted(windows)
-    rendered = _render_windows(renderer, obj_ids, TCO, K, windows, todo)
+    strides = {i: 1 if sample_spacing is None else pixel_stride(sample_spacing, K, TCO[i, 2, 3]) for i in todo}
+    rendered = _render_windows(renderer, obj_ids, TCO, K, windows, todo, strides)
     for j, i in enumerate(todo):
-        x0, y0, x1, y1 = windows[i]
-        scores[i] = _window_agreement(rendered[j][: y1 - y0, : x1 - x0], depth[y0:y1, x0:x1], masks[i, y0:y1, x0:x1],
-                                      tolerance)
+        scores[i] = _window_agreement(rendered[j], depth, masks[i], windows[i], strides[i], tolerance)
     return scores
 
 
@@ -419,7 +452,8 @@ def _refine_one(
     TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, mask: np.ndarray, rendered: np.ndarray,
     window: tuple[int, int, int, int], cfg: IcpConfig, symmetries: np.ndarray | None,
 ) -> IcpResult:
-    """ICP of one object whose model depth ``rendered`` [h', w'] (>= window) starts at the window's corner."""
+    """ICP of one object whose model depth ``rendered`` starts at the window's corner, every
+    :func:`pixel_stride`-th pixel (:func:`_render_windows`)."""
     import open3d as o3d
 
     timings: dict[str, float] = {}
@@ -472,7 +506,8 @@ def _object_clouds(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, mask: np.n
     solve would get wrong for large angles). Raises _Rejected when either cloud is too small."""
     x0, y0, x1, y1 = window
     s = pixel_stride(cfg.voxel_size, K, TCO[2, 3])
-    d_model = rendered[: y1 - y0 : s, : x1 - x0 : s]
+    h, w = _strided_shape(window, s)
+    d_model = rendered[:h, :w]
     d_meas = depth[y0:y1:s, x0:x1:s]
     meas_ok = (d_meas > 0) & (d_meas < np.inf)
     m = mask[y0:y1:s, x0:x1:s]
@@ -513,7 +548,8 @@ def _register(source: Any, target: Any, T_init: np.ndarray, cfg: IcpConfig) -> t
         kernel = robust_kernel(cfg.robust_kernel, dist if cfg.robust_k is None else cfg.robust_k)
         result = reg.registration_icp(
             source, target, dist, T, reg.TransformationEstimationPointToPlane(kernel),
-            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(iters)),
+            reg.ICPConvergenceCriteria(relative_fitness=cfg.relative_tolerance, relative_rmse=cfg.relative_tolerance,
+                                       max_iteration=int(iters)),
         )
         T, fitness, inlier_rmse = np.array(result.transformation), float(result.fitness), float(result.inlier_rmse)
     return T, fitness, inlier_rmse
