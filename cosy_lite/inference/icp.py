@@ -60,8 +60,8 @@ class IcpConfig:
     (e.g. ``max_rotation_deg=15 max_translation=0.05 min_fitness=0.5 max_inlier_rmse=0.004``).
     """
 
-    # m, per stage; three stages against four (4, 2, 1, 0.5 cm): ICP 10-16 % faster, AR within 0.001 on
-    # the test and val splits; two (4, 0.8 cm) lost 0.006 (bench/RESULTS.md, session 33)
+    # m, per stage; three stages against four (4, 2, 1, 0.5 cm): ICP 9-19 % faster, AR within 0.001 on
+    # the test and val splits; two (4, 0.8 cm) lost 0.007 (bench/RESULTS.md, session 33)
     max_correspondence_distances: list[float] = field(default_factory=lambda: [0.04, 0.015, 0.005])
     iterations: list[int] = field(default_factory=lambda: [10, 10, 10])  # ICP iterations per stage, at most
     # a stage ends early when fitness and inlier RMSE change by less than this fraction in an iteration
