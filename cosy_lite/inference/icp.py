@@ -263,14 +263,18 @@ def _strided_shape(window: tuple[int, int, int, int], stride: int) -> tuple[int,
 
 
 def _window_intrinsics(K: np.ndarray, window: tuple[int, int, int, int], stride: int) -> np.ndarray:
-    """Intrinsics whose pixel (r, c) is the ray of the image's pixel ``(y0 + stride r, x0 + stride c)``
-    (rays through pixel centres: ``u = c + 0.5``)."""
+    """Intrinsics whose pixel (r, c) is the ray of the image's pixel ``(y0 + stride r, x0 + stride c)``:
+    the crop of :func:`~cosy_lite.geometry.crops.crop_intrinsics` whose pixel ``c`` samples the image at
+    ``u = x0 + stride c + 0.5`` (rays through pixel centres)."""
+    import torch
+
+    from cosy_lite.geometry.crops import crop_intrinsics
+
     x0, y0 = window[:2]
-    Kw = np.array(K, dtype=np.float64)
-    Kw[:2, :2] /= stride
-    Kw[0, 2] = (K[0, 2] - x0 - 0.5) / stride + 0.5
-    Kw[1, 2] = (K[1, 2] - y0 - 0.5) / stride + 0.5
-    return Kw
+    h, w = _strided_shape(window, stride)
+    left, top = x0 + 0.5 - 0.5 * stride, y0 + 0.5 - 0.5 * stride
+    box = torch.tensor([[left, top, left + w * stride, top + h * stride]], dtype=torch.float64)
+    return crop_intrinsics(torch.as_tensor(K, dtype=torch.float64)[None], box, (h, w))[0].numpy()
 
 
 def _check_inputs(TCO: np.ndarray, K: np.ndarray, depth: np.ndarray, masks: np.ndarray, obj_ids: Sequence[int]) -> None:
