@@ -9,7 +9,7 @@ import torch
 from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.nets.flow_pose_net import FlowPoseNet, flow_from_cost, local_cost_volume
-from cosy_lite.nets.flow_pose_solver import MIN_CELLS, pose_from_flow
+from cosy_lite.nets.flow_pose_solver import MIN_CELLS, pose_from_flow, solve_pose, weighted_cells
 from cosy_lite.nets.flow_targets import FlowTargets, flow_loss, flow_targets
 from cosy_lite.nets.initial_pose import add_pose_noise
 from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
@@ -70,6 +70,32 @@ def test_targets_give_the_gt_pose_back_through_the_solver():
     assert rotation_angle_deg(noisy[:, :3, :3], gt[:, :3, :3]).min() > 2  # there was something to correct
     assert rotation_angle_deg(new[:, :3, :3], gt[:, :3, :3]).max() < 1e-3
     assert (new[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1).max() < 1e-6
+
+
+def test_solver_fits_only_the_weighted_cells_and_cells_without_weight_change_nothing():
+    """The solver cuts each item to its weighted cells (padding with weight 0); cells of weight 0
+    anywhere, with any point and target, leave the pose as it is without them."""
+    gt, noisy = _poses(3)
+    K = _K(3)
+    depth = _sphere_depth(noisy, K)
+    t = flow_targets(depth, K, noisy, gt, torch.ones(3, H, W, dtype=torch.bool), S)
+    keep = t.valid.reshape(3, -1)
+    keep[1, ::2] = False  # items with different numbers of cells
+    points = torch.randn(3, keep.shape[1], 3, dtype=torch.float64) * 0.1 + torch.tensor([0.0, 0.0, 0.5])
+    targets = torch.randn(3, keep.shape[1], 2, dtype=torch.float64) * 50
+    weights = torch.rand(3, keep.shape[1], dtype=torch.float64) * keep
+    p, q, w = weighted_cells(points, targets, weights)
+    assert w.shape[1] == int(keep.sum(dim=1).max()) < keep.shape[1]
+    for b in range(3):  # each item's weighted cells first, in their order, the rest weight 0
+        n = int(keep[b].sum())
+        assert torch.equal(p[b, :n], points[b, keep[b]]) and torch.equal(q[b, :n], targets[b, keep[b]])
+        assert torch.equal(w[b, :n], weights[b, keep[b]]) and not w[b, n:].any()
+    full = solve_pose(noisy, K, points, targets, weights)
+    for b in range(3):
+        alone = solve_pose(noisy[b:b + 1], K[b:b + 1], points[b:b + 1, keep[b]], targets[b:b + 1, keep[b]],
+                           weights[b:b + 1, keep[b]])
+        assert torch.allclose(full[b:b + 1], alone, atol=1e-12)
+    assert not torch.allclose(full[1], solve_pose(noisy, K, points, targets, weights.clamp(min=0.01))[1], atol=1e-6)
 
 
 def test_solver_keeps_the_pose_without_enough_cells_or_with_nan():

@@ -75,6 +75,20 @@ def so3_exp(w: Tensor) -> Tensor:
     return eye + theta.sin() * k + (1 - theta.cos()) * (k @ k)
 
 
+def weighted_cells(points: Tensor, targets: Tensor, weights: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``points [B,N,3]``, ``targets [B,N,2]``, ``weights [B,N]`` cut to the cells with weight, each
+    item's first (the others padded with weight 0): ``N`` becomes the most weighted cells of an item.
+    Cells without weight add exactly nothing to the fit; the rendering covers a fraction of its crop."""
+    if weights.shape[1] == 0:
+        return points, targets, weights
+    n = int((weights > 0).sum(dim=1).max())
+    if n == weights.shape[1]:
+        return points, targets, weights
+    order = torch.argsort((weights > 0).to(torch.int8), dim=1, descending=True, stable=True)[:, :n]
+    return (torch.gather(points, 1, order[..., None].expand(-1, -1, 3)),
+            torch.gather(targets, 1, order[..., None].expand(-1, -1, 2)), torch.gather(weights, 1, order))
+
+
 def solve_pose(TCO: Tensor, K_crop: Tensor, points: Tensor, targets: Tensor, weights: Tensor,
                iterations: int = GN_ITERATIONS, huber_px: float = HUBER_PX) -> Tensor:
     """Weighted robust PnP from the current pose (float64).
@@ -84,26 +98,31 @@ def solve_pose(TCO: Tensor, K_crop: Tensor, points: Tensor, targets: Tensor, wei
     Returns ``TCO_new [B,4,4]``: ``R_new = dR R``, ``t_new`` (the object origin moves with the points).
     """
     TCO, K_crop = TCO.double(), K_crop.double()
-    B = TCO.shape[0]
+    points, targets, weights = weighted_cells(points, targets, weights)
+    B, N = weights.shape
     centred = points - TCO[:, None, :3, 3]
     eye6 = torch.eye(6, dtype=torch.float64, device=TCO.device)
     dR = torch.eye(3, dtype=torch.float64, device=TCO.device).expand(B, 3, 3)
     t = TCO[:, :3, 3]
-    fx, fy = K_crop[:, 0, 0, None], K_crop[:, 1, 1, None]
-    cx, cy = K_crop[:, 0, 2, None], K_crop[:, 1, 2, None]
+    f = torch.stack([K_crop[:, 0, 0], K_crop[:, 1, 1]], dim=-1)[:, None]  # [B,1,2]
+    c = torch.stack([K_crop[:, 0, 2], K_crop[:, 1, 2]], dim=-1)[:, None]
     for _ in range(iterations):
-        P = torch.einsum("bij,bnj->bni", dR, centred)
+        P = centred @ dR.transpose(1, 2)
         Y = P + t[:, None]
-        z = Y[..., 2].clamp(min=1e-3)
-        residual = torch.stack([fx * Y[..., 0] / z + cx, fy * Y[..., 1] / z + cy], dim=-1) - targets
-        zero = torch.zeros_like(z)
-        J_y = torch.stack([torch.stack([fx / z, zero, -fx * Y[..., 0] / z ** 2], -1),
-                           torch.stack([zero, fy / z, -fy * Y[..., 1] / z ** 2], -1)], dim=-2)  # [B,N,2,3]
-        J = torch.cat([-J_y @ _skew(P), J_y], dim=-1)  # d/d(rotation about the origin, translation)
+        z = Y[..., 2:].clamp(min=1e-3)
+        residual = f * Y[..., :2] / z + c - targets  # [B,N,2]
+        # d(projection)/dY, row k: f_k / z on axis k, -f_k Y_k / z^2 on z; d/d(rotation) of row a is P x a
+        J_y = torch.zeros(B, N, 2, 3, dtype=torch.float64, device=TCO.device)
+        J_y[..., 0, 0] = f[..., 0] / z[..., 0]
+        J_y[..., 1, 1] = f[..., 1] / z[..., 0]
+        J_y[..., :, 2] = -f * Y[..., :2] / z ** 2
+        J = torch.cat([torch.linalg.cross(P[:, :, None].expand(-1, -1, 2, -1), J_y, dim=-1), J_y], dim=-1)
         e = residual.norm(dim=-1)
         w = weights * torch.where(e < huber_px, torch.ones_like(e), huber_px / e.clamp(min=1e-12))
-        H = torch.einsum("bnki,bn,bnkj->bij", J, w, J)
-        g = torch.einsum("bnki,bn,bnk->bi", J, w, residual)
+        Jw = (J * w[..., None, None]).reshape(B, 2 * N, 6)
+        J2 = J.reshape(B, 2 * N, 6)
+        H = Jw.transpose(1, 2) @ J2
+        g = (Jw.transpose(1, 2) @ residual.reshape(B, 2 * N, 1))[..., 0]
         H = H + DAMPING * torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-12 * eye6
         step = -torch.linalg.solve(H, g[..., None])[..., 0]
         dR = so3_exp(step[:, :3]) @ dR
