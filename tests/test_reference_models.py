@@ -399,7 +399,8 @@ def test_accuracy_of_the_reference_models(test_images, templates_cache, onnx_exp
 
 def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_images, templates_cache):
     """A decoy labelled X on another object's region outscores X's own detection: with one candidate per
-    instance the decoy is posed; with ``vivo_candidates`` 2 the refiner's confidence picks X's own."""
+    instance the decoy is posed; with ``vivo_candidates`` 2 the refiner's confidence picks X's own, before
+    the set's last iteration on 240x320 crops: only the detection kept runs it."""
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.detections import Detections, oracle_detections
 
@@ -407,6 +408,14 @@ def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_i
     predictors = {n: Predictor.from_pretrained(
         NAME, dataset=test_images, detector=False, templates_cache=templates_cache,
         config=inference_config(reference_models(NAME).inference, overrides=[f"vivo_candidates={n}"])) for n in (1, 2)}
+    assert predictors[2].config.refiner_fine_iterations == [5] and predictors[2].config.n_refiner_iterations == 5
+    refiner, crops = predictors[2]._nets["refiner"], []
+
+    def recording(x: torch.Tensor) -> torch.Tensor:
+        crops.append(tuple(x.shape))
+        return refiner(x)
+
+    predictors[2]._nets["refiner"] = recording
     right = trials = 0
     for rec in list(ds.images("test"))[:2]:
         rgb, oracle = ds.load_rgb(rec), oracle_detections(ds, rec, min_visib_fract=0.5)
@@ -415,8 +424,10 @@ def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_i
             obj = int(oracle.obj_ids[i])
             det = Detections(oracle.boxes[[decoy, i]], torch.tensor([obj, obj]), torch.tensor([0.9, 0.5]),
                              oracle.masks[[decoy, i]])
+            crops.clear()
             est = {n: p.predict(rgb, rec.camera.K, detections=det, inst_counts={obj: 1}) for n, p in predictors.items()}
             assert len(est[1]) == len(est[2]) == 1
+            assert crops == [(2, 6, 144, 192)] * 4 + [(1, 6, 240, 320)], crops  # both posed; the one kept on larger crops
             assert est[1].scores.tolist() == pytest.approx([0.9])  # the best scored: the decoy
             picked_own = est[2].scores.tolist() == pytest.approx([0.5])
             for e in est.values():  # each estimate is its own detection's: its origin projects into that box

@@ -113,6 +113,32 @@ def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer:
     return inference_net(scorer.net, torch.device("cpu"), True, fuse_bn, (2, 3, CROP_SIZE, CROP_SIZE))
 
 
+Choice: TypeAlias = Callable[[Tensor | None], Tensor]  # the refiner's confidence [N] (None: none ran) -> kept indices
+
+
+def _most_confident_of(det: Detections, inst_counts: Mapping[int, int]) -> Choice:
+    """The choice of :func:`~cosy_lite.inference.vivo.most_confident` among ``det`` (the detection scores
+    when no refiner iteration ran)."""
+    counts = dict(inst_counts)
+
+    def choose(confidence: Tensor | None) -> Tensor:
+        return most_confident(det.obj_ids, det.scores if confidence is None else confidence, counts)
+
+    return choose
+
+
+def _split_before_fine(first: int, n_iterations: int, fine: FineCrops | None) -> list[tuple[int, int]]:
+    """(first iteration, count) of the runs of ``n_iterations`` from ``first``: one, or with ``fine`` two when
+    the last iterations run on larger crops after at least one on the network's own: those apart."""
+    last = first + n_iterations - 1
+    start_fine = last + 1
+    while fine is not None and start_fine - 1 >= first and start_fine - 1 in fine.iterations:
+        start_fine -= 1
+    if not first < start_fine <= last:
+        return [(first, n_iterations)] if n_iterations else []
+    return [(first, start_fine - first), (start_fine, last - start_fine + 1)]
+
+
 def check_fine_crops(config: InferenceConfig, refiner: PoseModel | None) -> None:
     """SetupError naming the file when ``refiner_fine_iterations`` ask for crops the refiner cannot take:
     larger crops need a network of any input size, a flow refiner (torch) or its graph exported so
@@ -402,7 +428,8 @@ class Predictor:
             inst_counts: BOP19 ViVo, obj_id -> how many instances to estimate (other objects dropped): each
                 object's ``vivo_candidates x inst_count`` best detections are posed
                 (:func:`~cosy_lite.inference.vivo.select_candidates`) and the ``inst_count`` the refiner is
-                most confident of in its last iteration go on (to ICP, and out).
+                most confident of in its last iteration go on (to ICP, and out); with ``refiner_fine_iterations``
+                last, its last iteration before those, which only the detections kept run.
         Returns: :class:`PoseEstimates` by decreasing score (empty when nothing is detected);
         detections whose box has a side under :data:`~cosy_lite.bop.detections.MIN_BOX_SIZE_PX`
         (or a non-finite corner) are skipped with a RuntimeWarning: no pose from a box of nothing.
@@ -439,13 +466,14 @@ class Predictor:
             warnings.warn(f"Predictor: depth_from_mask / silhouette_guard compare the refined poses with the "
                           f"detections' masks, but these {len(det)} detections are boxes only: the refiner's poses "
                           "are kept", RuntimeWarning, stacklevel=2)
+        choose = None  # the refiner's choice among each object's detections (else: the best scored, above)
+        if inst_counts is not None and self.config.vivo_candidates > 1:
+            choose = _most_confident_of(det, inst_counts)
         with flush_denormals():
-            TCO_coarse, TCO, hypotheses, confidence = self._poses(
-                rgb, K, det, clock, verify, given_masks if fits_masks and self.refiner is not None else None)
-        if inst_counts is not None and self.config.vivo_candidates > 1:  # the refiner's choice (else: the best scored)
-            keep = most_confident(det.obj_ids, det.scores if confidence is None else confidence, inst_counts)
-            det, TCO_coarse, TCO = det.select(keep), TCO_coarse[keep], TCO[keep]
-            hypotheses = None if hypotheses is None else hypotheses[keep]
+            TCO_coarse, TCO, hypotheses, keep = self._poses(
+                rgb, K, det, clock, verify, given_masks if fits_masks and self.refiner is not None else None, choose)
+        if keep is not None:
+            det = det.select(keep)
             given_masks = None if given_masks is None else given_masks[keep]
         icp_results, TCO_before_icp = None, None
         if self.config.icp and depth is not None:
@@ -466,14 +494,18 @@ class Predictor:
                              None if given_masks is None else given_masks.clone())
 
     def _poses(self, rgb: np.ndarray, K: Tensor, det: Detections, clock: Clock, verify: bool = False,
-               exact_masks: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
-        """(after coarse, after refiner) ``[N,4,4]`` float64 on CPU, the refiner's confidence ``[N]`` in its last
-        iteration (None when none ran: :func:`~cosy_lite.nets.render_and_compare.iterate_poses_scored`), and with several template
-        candidates the hypotheses ``[N,k,4,4]`` for ICP: the chosen one's final pose first, then the
-        others after their one refiner iteration, or with ``candidate_choice="start"`` as the start
-        stage made them (None with one candidate). ``verify``: ICP will verify the hypotheses
-        (with ``candidate_choice="start"`` they are kept only then). ``exact_masks [N,H,W]``: the masks the
-        refined poses are checked against (``silhouette_guard``, ``depth_from_mask``: :mod:`~cosy_lite.inference.mask_fit`)."""
+               exact_masks: Tensor | None = None, choose: Choice | None = None,
+               ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """(after coarse, after refiner) ``[M,4,4]`` float64 on CPU, with several template candidates the
+        hypotheses ``[M,k,4,4]`` for ICP (the chosen one's final pose first, then the others after their one
+        refiner iteration, or with ``candidate_choice="start"`` as the start stage made them; None with one
+        candidate), and the indices ``[M]`` of the detections kept (None: all, ``M = N``). ``verify``: ICP will
+        verify the hypotheses (with ``candidate_choice="start"`` they are kept only then). ``exact_masks
+        [N,H,W]``: the masks the refined poses are checked against (``silhouette_guard``, ``depth_from_mask``:
+        :mod:`~cosy_lite.inference.mask_fit`). ``choose``: which detections go on, from the refiner's confidence
+        ``[N]`` (:func:`~cosy_lite.nets.render_and_compare.iterate_poses_scored`; None when none ran), asked
+        before the refiner's last iterations on larger crops (``refiner_fine_iterations``: only the detections
+        kept run them) or else after its last iteration."""
         t0 = time.perf_counter()
         before = clock.seconds["render"] + clock.seconds["networks"]
         N = len(det)
@@ -485,6 +517,61 @@ class Predictor:
         K_b = K.to(self.device, torch.float32)[None].expand(N, 3, 3).contiguous()
         points = self.objects.points[rows.to(self.device)]
         renderer = TimedRenderer(self.renderer, clock)
+        TCO_coarse, TCO_init, hypotheses, pick, steps = self._start(rgb, K, det, image, K_b, points, renderer, clock,
+                                                                    verify)
+        TCO = TCO_init
+        refined: list[Tensor] = []  # the refiner's poses after each of its iterations
+        confidence = None  # ... and its confidence in the last one
+        keep = None
+
+        def select(chosen: Tensor) -> None:  # only the detections kept go on
+            nonlocal keep, images, K_b, points, ids, TCO, TCO_coarse, refined, hypotheses, pick, exact_masks
+            keep = chosen.to(self.device)
+            images, K_b, points, TCO, TCO_coarse = images[keep], K_b[keep], points[keep], TCO[keep], TCO_coarse[keep]
+            ids, refined = [ids[i] for i in keep.tolist()], [p[keep] for p in refined]
+            hypotheses = None if hypotheses is None else hypotheses[keep]
+            pick = None if pick is None else pick[keep]
+            exact_masks = None if exact_masks is None else exact_masks[keep.to(exact_masks.device)]
+
+        for role, model, n_iterations in steps:
+            net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
+            fine = (FineCrops.of(self.config.refiner_fine_iterations, self.config.refiner_fine_resolution)
+                    if role == "refiner" else None)
+            first = 1 + self.config.n_refiner_iterations - n_iterations
+            for first_i, n_i in _split_before_fine(first, n_iterations, fine if choose is not None else None):
+                if first_i > first and choose is not None:  # the choice, before the larger crops
+                    select(choose(confidence))
+                    choose = None
+                poses, score = iterate_poses_scored(
+                    net, images, K_b, TCO, ids, points, renderer, n_i, model.crop_resolution,
+                    self.config.batch_size, model.output, fine=fine, first_iteration=first_i)
+                TCO = poses[-1]
+                if role == "refiner":
+                    refined, confidence = refined + poses, score.cpu()
+            if role == "coarse":
+                TCO_coarse = TCO
+        if choose is not None:  # after the refiner's last iteration (or the start's, without a refiner)
+            select(choose(confidence))
+        TCO = self._refined_poses(TCO, refined, K, exact_masks, ids, renderer)
+        clock.sync()
+        spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
+        clock.seconds["crops"] += spent
+        if hypotheses is not None:  # the chosen one's final pose first (ICP tries it before the others)
+            at = torch.arange(len(TCO), device=TCO.device)
+            hypotheses = hypotheses.clone().double()
+            hypotheses[at, pick] = hypotheses[at, 0]
+            hypotheses[:, 0] = TCO
+            hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
+        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses, None if keep is None else keep.cpu()
+
+    def _start(self, rgb: np.ndarray, K: Tensor, det: Detections, image: Tensor, K_b: Tensor, points: Tensor,
+               renderer: Renderer, clock: Clock, verify: bool,
+               ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, list[tuple[str, PoseModel, int]]]:
+        """The start stage of :meth:`_poses`: (start pose, the pose the networks start from ``[N,4,4]``, the
+        hypotheses ``[N,k,4,4]`` and the candidate each chose ``[N]`` (None with one), the network steps
+        (role, model, iterations) left to run)."""
+        N = len(det)
+        rows = self.objects.index(det.obj_ids)
         n_refiner = self.config.n_refiner_iterations
         hypotheses, pick = None, None
         steps: list[tuple[str, PoseModel, int]] = []
@@ -504,39 +591,12 @@ class Predictor:
             if candidates.shape[1] == 1:
                 TCO_init = TCO_coarse = candidates[:, 0].float()
             else:
-                TCO_coarse, TCO_init, hypotheses, pick = self._choose_candidate(candidates.float(), image, K_b, ids,
-                                                                                points, renderer, clock)
+                TCO_coarse, TCO_init, hypotheses, pick = self._choose_candidate(
+                    candidates.float(), image, K_b, det.obj_ids.tolist(), points, renderer, clock)
                 n_refiner -= 1
         if self.refiner is not None:
             steps.append(("refiner", self.refiner, n_refiner))
-        TCO = TCO_init
-        refined: list[Tensor] = []  # the refiner's poses after each of its iterations
-        confidence = None  # ... and its confidence in the last one
-        for role, model, n_iterations in steps:
-            net = timed_net(self._nets[role], clock, self.config.channels_last, self.config.precision)
-            if n_iterations:
-                fine = (FineCrops.of(self.config.refiner_fine_iterations, self.config.refiner_fine_resolution)
-                        if role == "refiner" else None)
-                poses, score = iterate_poses_scored(
-                    net, images, K_b, TCO, ids, points, renderer, n_iterations, model.crop_resolution,
-                    self.config.batch_size, model.output, fine=fine,
-                    first_iteration=1 + self.config.n_refiner_iterations - n_iterations)
-                TCO = poses[-1]
-                if role == "refiner":
-                    refined, confidence = poses, score.cpu()
-            if role == "coarse":
-                TCO_coarse = TCO
-        TCO = self._refined_poses(TCO, refined, K, exact_masks, ids, renderer)
-        clock.sync()
-        spent = time.perf_counter() - t0 - (clock.seconds["render"] + clock.seconds["networks"] - before)
-        clock.seconds["crops"] += spent
-        if hypotheses is not None:  # the chosen one's final pose first (ICP tries it before the others)
-            at = torch.arange(N, device=TCO.device)
-            hypotheses = hypotheses.clone().double()
-            hypotheses[at, pick] = hypotheses[at, 0]
-            hypotheses[:, 0] = TCO
-            hypotheses = orthonormalise(hypotheses.cpu().reshape(-1, 4, 4)).reshape(hypotheses.shape)
-        return orthonormalise(TCO_coarse.cpu()), orthonormalise(TCO.cpu()), hypotheses, confidence
+        return TCO_coarse, TCO_init, hypotheses, pick, steps
 
     def _refined_poses(self, TCO: Tensor, refined: list[Tensor], K: Tensor, exact_masks: Tensor | None, ids: list[int],
                        renderer: Renderer) -> Tensor:

@@ -74,8 +74,9 @@ class InferenceConfig:
     max_per_object: int = 0  # at most this many detections per object and image, the best scored (0: no limit)
     # BOP19 ViVo (Predictor.predict with inst_counts: cosy-lite infer's 6d-localization): pose up to this many
     # detections per target instance, the best scored of its object that score at least vivo_score_ratio x its best,
-    # and keep the inst_count the refiner is most confident of in its last iteration (cosy_lite.inference.vivo); only
-    # those go on to ICP. 1: the inst_count best scored. The ycbvsynth set: 2 (for 7 % of the targets the detector's
+    # and keep the inst_count the refiner is most confident of (cosy_lite.inference.vivo): in its last iteration on its
+    # own crop size, before the iterations on larger crops (refiner_fine_iterations), which only those run; only those
+    # go on to ICP. 1: the inst_count best scored. The ycbvsynth set: 2 (for 7 % of the targets the detector's
     # best is wrong and another right; chosen on a second generated split, bench/RESULTS.md, session 31).
     vivo_candidates: int = 1
     vivo_score_ratio: float = 0.3
