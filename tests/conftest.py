@@ -9,7 +9,7 @@ import pytest
 
 TESTS = Path(__file__).resolve().parent
 ROOT = TESTS.parent
-sys.path.insert(0, str(TESTS))  # bop_fixtures, toy_task
+sys.path.insert(0, str(TESTS))  # bop_fixtures, scorer_files, toy_task
 
 # Every test computes with this many torch threads, whatever the machine has: float reductions split
 # over threads round differently, so a tolerance measured here holds on a 2- or a 64-core machine.

@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from scorer_files import scorer_file
 
 from cosy_lite.bop.dataset import BopDataset
 from cosy_lite.geometry.symmetries import rotation_errors_deg
@@ -156,19 +157,6 @@ def test_start_errors_summary_counts_flips_on_textured_objects_only():
     assert two["any_candidate_within_30deg"] == 1.0
 
 
-def _scorer_file(path, obj_ids=(1, 2, 5, 8), shading="headlight", scale=1.0):
-    from cosy_lite.nets.appearance_scorer import AppearanceScorer
-    from cosy_lite.weights.checkpoint import Checkpoint, save_checkpoint
-
-    net = AppearanceScorer(load_pretrained=True)
-    with torch.no_grad():
-        net.iou_weight.fill_(0.25)
-        net.query.trunk.conv_stem.weight.mul_(scale)
-    meta = {"obj_ids": list(obj_ids), "trunk": "efficientnet_lite0", "templates": {"shading": shading}}
-    save_checkpoint(path, Checkpoint("scorer", net.state_dict(), {}, 1, meta=meta))
-    return path
-
-
 def test_a_trained_scorer_describes_the_detection_and_brings_its_iou_weight(scene, tmp_path):
     from cosy_lite.weights.loaders import load_scorer
 
@@ -176,7 +164,7 @@ def test_a_trained_scorer_describes_the_detection_and_brings_its_iou_weight(scen
     rgb, mask, _ = _image(renderer, upright)
     frozen_sil, frozen = _matcher(renderer, [upright, flipped], diameter)
     # the ImageNet weights unchanged: the same descriptor as the frozen one, the scorer's IoU weight
-    same = load_scorer(_scorer_file(tmp_path / "same.pt")).net
+    same = load_scorer(scorer_file(tmp_path / "same.pt")).net
     sil, app = _matcher(renderer, [upright, flipped], diameter, scorer=same)
     view = sil.observe(mask, _box(mask), K)
     assert app.iou_weight == 0.25 and not app.scorer.training
@@ -185,7 +173,7 @@ def test_a_trained_scorer_describes_the_detection_and_brings_its_iou_weight(scen
     assert np.allclose(app.score(CRACKER_BOX, rgb, view, K, iou) - frozen.score(CRACKER_BOX, rgb, view, K, iou),
                        [-0.25, 0.0], atol=1e-4)
     # other weights: another descriptor of the detection; the templates' descriptors stay the frozen ones
-    other = load_scorer(_scorer_file(tmp_path / "other.pt", scale=0.5)).net
+    other = load_scorer(scorer_file(tmp_path / "other.pt", scale=0.5)).net
     _, changed = _matcher(renderer, [upright, flipped], diameter, scorer=other)
     assert not torch.allclose(changed.describe(rgb, view, K), frozen.describe(rgb, view, K), atol=1e-3)
     assert torch.equal(changed.descriptors(CRACKER_BOX), frozen.descriptors(CRACKER_BOX))
@@ -195,7 +183,7 @@ def test_a_trained_scorer_describes_the_detection_and_brings_its_iou_weight(scen
 def test_a_scorer_that_does_not_fit_the_pipeline_is_refused_by_name(tiny_synth_root, tmp_path, problem):
     from cosy_lite.inference.predictor import Predictor, SetupError
 
-    path = _scorer_file(tmp_path / "s.pt", obj_ids=(1,) if problem == "objects" else (1, 2, 5, 8),
+    path = scorer_file(tmp_path / "s.pt", obj_ids=(1,) if problem == "objects" else (1, 2, 5, 8),
                         shading="flat" if problem == "shading" else "headlight")
     refiner = tmp_path / "refiner.pt"
     _refiner_file(tiny_synth_root, refiner)

@@ -19,6 +19,8 @@ from torchvision.ops import box_iou
 ort = pytest.importorskip("onnxruntime")
 onnx = pytest.importorskip("onnx")
 
+from scorer_files import scorer_file  # noqa: E402
+
 from cosy_lite.export.manifest import Manifest, OnnxModelError  # noqa: E402
 from cosy_lite.export.onnx_export import export_detector, export_pose_net  # noqa: E402
 from cosy_lite.inference.onnx_runtime import OnnxDetector, OnnxPoseNet  # noqa: E402
@@ -66,18 +68,21 @@ def _detector():
 
 @pytest.fixture(scope="module")
 def export(tmp_path_factory) -> dict[str, Path]:
-    """Tiny checkpoints and their export through ``cosy-lite export`` (with int8 pose nets)."""
+    """Tiny checkpoints and their export through ``cosy-lite export`` (with int8 pose nets and a
+    coarse scorer whose first convolution differs from the frozen trunk's)."""
     from cosy_lite.cli import main as cli
 
     d = tmp_path_factory.mktemp("export")
     det = _detector()
     save_checkpoint(d / "detector.pt", Checkpoint("detector", det.state_dict(), {}, 0, meta=det.meta()))
     ckpts = {"coarse": _save_pose_ckpt(d / "coarse.pt", "coarse", 1),
-             "refiner": _save_pose_ckpt(d / "refiner.pt", "refiner", 2), "detector": d / "detector.pt"}
+             "refiner": _save_pose_ckpt(d / "refiner.pt", "refiner", 2), "detector": d / "detector.pt",
+             "scorer": scorer_file(d / "scorer.pt", scale=0.5)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rc = cli(["export", "--detector", str(ckpts["detector"]), "--coarse", str(ckpts["coarse"]),
-                  "--refiner", str(ckpts["refiner"]), "--quantize", "int8", "--out", str(d / "models")])
+                  "--refiner", str(ckpts["refiner"]), "--scorer", str(ckpts["scorer"]), "--quantize", "int8",
+                  "--out", str(d / "models")])
     assert rc == 0
     return {**ckpts, "models": d / "models"}
 
@@ -196,7 +201,7 @@ def test_manifest_and_metadata_round_trip(export):
     from cosy_lite.inference.onnx_runtime import load_onnx_models
 
     manifest = Manifest.read(export["models"])
-    assert set(manifest.models) == {"detector", "coarse", "refiner", "coarse.int8", "refiner.int8"}
+    assert set(manifest.models) == {"detector", "coarse", "refiner", "coarse.int8", "refiner.int8", "scorer"}
     for name, e in manifest.models.items():
         model = onnx.load(str(export["models"] / e.file))
         onnx.checker.check_model(model)
@@ -208,13 +213,20 @@ def test_manifest_and_metadata_round_trip(export):
         assert e.bytes == (export["models"] / e.file).stat().st_size and len(e.sha256) == 64
         if e.kind == "detector":
             assert json.loads(meta["cosy_lite.config"])["name"] == DETECTOR["name"]
+        elif e.kind == "scorer":
+            assert json.loads(meta["cosy_lite.crop_resolution"]) == e.crop_resolution == [64, 64]
+            assert json.loads(meta["cosy_lite.config"]) == {"trunk": "efficientnet_lite0", "iou_weight": 0.25,
+                                                            "template_shading": "headlight"}
+            assert e.input_shape == ["batch", 3, 64, 64] and str(export["scorer"]) in meta["cosy_lite.source"]
         else:
             assert json.loads(meta["cosy_lite.crop_resolution"]) == e.crop_resolution == list(CROP)
             assert json.loads(meta["cosy_lite.config"])["backbone"] == "resnet18"
             assert str(export[e.kind]) in meta["cosy_lite.source"]
     assert manifest.models["coarse"].check["max_abs_diff"] <= 1e-4
+    assert manifest.models["scorer"].check["max_abs_diff"] <= 1e-5
     loaded = load_onnx_models(export["models"], threads=1)
     assert loaded.coarse.crop_resolution == CROP and loaded.refiner.kind == "refiner"
+    assert (loaded.scorer.obj_ids, loaded.scorer.crop_size, loaded.scorer.iou_weight) == (OBJ_IDS, 64, 0.25)
     assert loaded.detector.label_map.obj_ids == tuple(OBJ_IDS)
     assert load_onnx_models(export["models"], threads=1, precision="int8").coarse.net.quantization == "int8"
     assert load_onnx_models(export["models"], detector=False).detector is None
@@ -292,6 +304,13 @@ def test_mismatched_manifest_gives_errors_naming_file_and_field(export, tmp_path
     root = edited("kind", lambda m: m["coarse"].update(kind="detector"))
     with pytest.raises(OnnxModelError, match=r"manifest.json \[models.coarse.kind\]"):
         load_onnx_models(root, threads=1)
+    root = edited("scorer_ids", lambda m: m["scorer"].update(obj_ids=[1, 2]))
+    with pytest.raises(OnnxModelError) as e:
+        load_onnx_models(root, threads=1)
+    assert e.value.path.endswith("scorer.onnx") and e.value.field == "metadata_props[cosy_lite.obj_ids]"
+    root = edited("scorer_shape", lambda m: m["scorer"].update(input_shape=["batch", 6, 64, 64]))
+    with pytest.raises(OnnxModelError, match=r"manifest.json \[models.scorer.input_shape\]"):
+        load_onnx_models(root, threads=1)
 
 
 def test_a_graph_with_three_input_channels_is_refused(tmp_path):
@@ -363,6 +382,51 @@ def test_onnx_backend_gives_the_torch_poses(tiny_synth_root, export, tmp_path, c
     assert infer.main(["--dataset", str(tiny_synth_root), "--onnx", str(tmp_path / "none"),
                        "--detections", "oracle", "--out", str(tmp_path / "x")]) == 2
     assert "none" in capsys.readouterr().err
+
+
+def test_exported_scorer_describes_the_detections_as_the_torch_scorer(tiny_synth_root, export, tmp_path):
+    """The scorer's graph gives the torch scorer's descriptors (batch 1 and 5); ``from_onnx`` with
+    ``start="appearance"`` describes a detection with it (the torch pipeline's descriptor with the
+    same checkpoint, not the frozen trunk's), brings its iou_weight, and refuses by name a scorer
+    trained against other shading than the refiner renders."""
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.detections import oracle_detections
+    from cosy_lite.export.onnx_export import export_models
+    from cosy_lite.inference.onnx_runtime import OnnxScorer
+    from cosy_lite.inference.predictor import Predictor, SetupError
+    from cosy_lite.weights.loaders import load_scorer
+
+    torch_net = load_scorer(export["scorer"]).net
+    config = InferenceConfig(start="appearance")
+    ds = BopDataset(tiny_synth_root)
+    onnx_pipeline = Predictor.from_onnx(export["models"], dataset=ds, threads=1, config=config)
+    scorer = onnx_pipeline.templates.appearance.scorer
+    assert isinstance(scorer, OnnxScorer) and onnx_pipeline.templates.appearance.iou_weight == 0.25
+    for batch in (1, 5):
+        crops = torch.rand(batch, 3, 64, 64, generator=torch.Generator().manual_seed(batch))
+        with torch.no_grad():
+            ref = torch_net(crops)
+        assert scorer(crops).shape == ref.shape and float((scorer(crops) - ref).abs().max()) <= 1e-5
+    with pytest.raises(ValueError, match=r"scorer.onnx: crops must be \[B,3,64,64\]"):
+        scorer(torch.rand(1, 3, 32, 32))
+    # one detection of a generated image, described by each pipeline's appearance start
+    torch_pipeline = Predictor.from_checkpoints(refiner=export["refiner"], dataset=ds, config=config,
+                                                scorer=export["scorer"])
+    frozen = Predictor.from_checkpoints(refiner=export["refiner"], dataset=ds, config=config)
+    rec = next(ds.images("test"))
+    rgb, det, K = ds.load_rgb(rec), oracle_detections(ds, rec), np.asarray(rec.camera.K)
+    view = onnx_pipeline.templates.observe(det.masks[0].numpy(), det.boxes[0].numpy(), K)
+    onnx_d, torch_d, frozen_d = (p.templates.appearance.describe(rgb, view, K)
+                                 for p in (onnx_pipeline, torch_pipeline, frozen))
+    assert float((onnx_d - torch_d).abs().max()) <= 1e-5
+    assert float((onnx_d - frozen_d).abs().max()) >= 1e-3  # the checkpoint's own weights, not the frozen trunk
+    # a scorer trained against flat-shaded templates, the refiner rendering with headlight shading
+    export_models(tmp_path / "flat", refiner=export["refiner"], scorer=scorer_file(tmp_path / "flat.pt", shading="flat"))
+    with pytest.raises(SetupError, match=r"scorer.onnx: the scorer was trained against templates rendered with 'flat'"):
+        Predictor.from_onnx(tmp_path / "flat", dataset=ds, threads=1, config=config)
+    # other starts do not use it
+    assert Predictor.from_onnx(tmp_path / "flat", dataset=ds, threads=1,
+                               config=InferenceConfig(start="templates")).templates.appearance is None
 
 
 def test_fine_refiner_iterations_need_a_refiner_graph_of_any_crop_size(tiny_synth_root, export):

@@ -17,6 +17,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -348,11 +349,13 @@ def templates_cache(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def onnx_export(tmp_path_factory) -> Path:
-    from cosy_lite.export.onnx_export import export_models
+    """``cosy-lite export --pretrained NAME``: the set's detector, refiner and coarse scorer, and its settings."""
+    from cosy_lite.cli import main as cli
 
-    ref = reference_models(NAME)
     out = tmp_path_factory.mktemp("onnx")
-    export_models(out, ref.path("detector"), None, ref.path("refiner"), inference=ref.inference)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert cli(["export", "--pretrained", NAME, "--out", str(out)]) == 0
     return out
 
 
@@ -395,6 +398,30 @@ def test_accuracy_of_the_reference_models(test_images, templates_cache, onnx_exp
     print(f"{backend} {detections} (bug: {injected_bug}): {scores}")
     floor = FLOORS[detections]
     assert scores["ar"] >= floor["ar"] and scores["mssd_0.1d"] >= floor["mssd_0.1d"], (scores, floor)
+
+
+def test_the_exported_set_describes_detections_with_its_scorer(test_images, onnx_export):
+    """The set's export carries its coarse scorer, so the onnxruntime pipeline starts as the torch one
+    does: each oracle detection of a test image described alike (to 1e-5), not by the frozen trunk."""
+    from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.bop.detections import oracle_detections
+    from cosy_lite.inference.onnx_runtime import OnnxScorer
+    from cosy_lite.nets.appearance_templates import detection_crop
+
+    ds = BopDataset(test_images)
+    pipelines = [Predictor.from_pretrained(NAME, dataset=test_images, detector=False),
+                 Predictor.from_onnx(onnx_export, dataset=test_images, detector=False, threads=1)]
+    apps = [p.templates.appearance for p in pipelines]
+    assert isinstance(apps[1].scorer, OnnxScorer) and apps[1].iou_weight == apps[0].iou_weight
+    rec = next(ds.images("test"))
+    rgb, det, K = ds.load_rgb(rec), oracle_detections(ds, rec, min_visib_fract=0.5), rec.camera.K
+    assert len(det) >= 4
+    for mask, box in zip(det.masks.numpy(), det.boxes.numpy()):
+        view = pipelines[1].templates.observe(mask, box, K)
+        torch_d, onnx_d = (a.describe(rgb, view, K) for a in apps)
+        frozen_d = apps[0].descriptor(detection_crop(rgb, view, K)[None])[0]
+        assert float((onnx_d - torch_d).abs().max()) <= 1e-5
+        assert float((onnx_d - frozen_d).abs().max()) >= 1e-3
 
 
 def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_images, templates_cache):

@@ -10,10 +10,13 @@ from pathlib import Path
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pretrained", default=None, metavar="NAME",
-                   help="the shipped reference models NAME (e.g. ycbvsynth); --detector/--coarse/--refiner given as well win")
+                   help="the shipped reference models NAME (e.g. ycbvsynth); --detector/--coarse/--refiner/--scorer "
+                        "given as well win")
     p.add_argument("--detector", type=Path, default=None, metavar="CKPT", help="detector checkpoint -> detector.onnx")
     p.add_argument("--coarse", type=Path, default=None, metavar="CKPT", help="coarse checkpoint -> coarse.onnx")
     p.add_argument("--refiner", type=Path, default=None, metavar="CKPT", help="refiner checkpoint -> refiner.onnx")
+    p.add_argument("--scorer", type=Path, default=None, metavar="CKPT",
+                   help="coarse scorer checkpoint (train.py --model scorer) -> scorer.onnx, for start=appearance")
     p.add_argument("--out", type=Path, default=Path("onnx"), metavar="DIR",
                    help="export folder (default onnx/; models/ holds the reference models)")
     p.add_argument("--quantize", default=None, choices=["int8"],
@@ -38,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # A bad checkpoint raises CheckpointError naming it: one message, exit 2 (cosy_lite.cli).
     manifest = export_models(args.out, args.detector, args.coarse, args.refiner, args.quantize, args.opset,
-                             inference)
+                             inference, args.scorer)
     for line in describe(manifest):
         print(line)
     print(f"manifest: {manifest.path}")

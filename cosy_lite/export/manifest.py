@@ -9,11 +9,14 @@ metadata each ``.onnx`` carries about itself.
                            "crop_resolution": [240, 320], "quantization": "none", "opset": 17,
                            "bytes": 1234, "sha256": "...", "source": "runs/.../checkpoint.pt",
                            "check": {"batch": 2, "max_abs_diff": 1e-7}},
-                "coarse.int8": {...}, "refiner": {...}, "detector": {...}},
+                "coarse.int8": {...}, "refiner": {...}, "detector": {...},
+                "scorer": {"file": "scorer.onnx", "kind": "scorer", "input_name": "crops",
+                           "input_shape": ["batch", 3, 64, 64], "crop_resolution": [64, 64], ...}},
      "inference": {"start": "appearance", "n_candidates": 1, "n_refiner_iterations": 4, ...}}
 
-Entry names are the role ("detector", "coarse", "refiner"), with ``.int8`` for the dynamically
-quantised copies of the pose networks. ``inference`` is how the networks are meant to run
+Entry names are the role ("detector", "coarse", "refiner", "scorer": the coarse scorer of
+``start="appearance"``), with ``.int8`` for the dynamically quantised copies of the pose
+networks. ``inference`` is how the networks are meant to run
 (the fields of :class:`~cosy_lite.inference.settings.InferenceConfig`, which checks them; its
 defaults when absent), so that an export is complete by itself. Each ``.onnx`` repeats its entry's facts in
 ``metadata_props`` (keys :data:`META_KEYS`), so a single file is usable without the manifest and a
@@ -35,17 +38,20 @@ from cosy_lite.errors import CosyLiteError
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = 1
 POSE_KINDS = ("coarse", "refiner")
-KINDS = ("detector", *POSE_KINDS)
+SCORER_KIND = "scorer"
+KINDS = ("detector", *POSE_KINDS, SCORER_KIND)
 QUANTIZATIONS = ("none", "int8")
 POSE_INPUT_CHANNELS = 6  # image crop + rendered crop, RGB each
+SCORER_INPUT_CHANNELS = 3  # the detection crop, RGB (the templates keep their cached descriptors)
 
 # metadata_props key -> what it holds (values are strings; JSON where structured)
 META_KEYS: dict[str, str] = {
-    "cosy_lite.kind": "detector | coarse | refiner",
+    "cosy_lite.kind": "detector | coarse | refiner | scorer",
     "cosy_lite.obj_ids": "JSON list of BOP obj_ids (detector: label k is obj_ids[k - 1])",
     "cosy_lite.input": "JSON {name, shape, dtype, range}",
-    "cosy_lite.crop_resolution": "JSON [h, w] px of the pose networks' crops (pose networks only)",
-    "cosy_lite.config": "JSON of the network config (PoseNetConfig / DetectorConfig)",
+    "cosy_lite.crop_resolution": "JSON [h, w] px of the pose networks' and the scorer's crops (not the detector)",
+    "cosy_lite.config": "JSON of the network config (PoseNetConfig / DetectorConfig / the scorer's trunk, "
+                        "template shading and iou_weight)",
     "cosy_lite.quantization": "none | int8",
     "cosy_lite.version": "cosy_lite version that exported the file",
     "cosy_lite.source": "the checkpoint the weights came from",
@@ -221,12 +227,13 @@ def _entry(path: Path, name: str, raw: Any) -> ModelEntry:
     ids = e.obj_ids
     if not isinstance(ids, list) or not ids or not all(isinstance(i, int) and i > 0 for i in ids):
         raise OnnxModelError(path, f"{where}.obj_ids", f"expected a non-empty list of positive ints, got {ids!r}")
-    if e.kind in POSE_KINDS:
+    if e.kind != "detector":
         crop = e.crop_resolution
         if not (isinstance(crop, list) and len(crop) == 2 and all(isinstance(v, int) and v > 0 for v in crop)):
             raise OnnxModelError(path, f"{where}.crop_resolution", f"expected [h, w] positive ints, got {crop!r}")
+        channels = POSE_INPUT_CHANNELS if e.kind in POSE_KINDS else SCORER_INPUT_CHANNELS
         if (not isinstance(e.input_shape, list) or len(e.input_shape) != 4
-                or e.input_shape[1] != POSE_INPUT_CHANNELS or list(e.input_shape[2:]) != crop):
+                or e.input_shape[1] != channels or list(e.input_shape[2:]) != crop):
             raise OnnxModelError(path, f"{where}.input_shape", f"{e.input_shape!r}, expected "
-                                 f"['batch', {POSE_INPUT_CHANNELS}, {crop[0]}, {crop[1]}] (crop_resolution {crop})")
+                                 f"['batch', {channels}, {crop[0]}, {crop[1]}] (crop_resolution {crop})")
     return e

@@ -1,4 +1,4 @@
-"""Export the detector, coarse and refiner networks to ONNX with self-describing metadata.
+"""Export the detector, coarse, refiner and coarse scorer networks to ONNX with self-describing metadata.
 
 - Pose networks: :class:`~cosy_lite.nets.pose_net.PoseNet` traced as it is, ``images
   [batch, 6, h, w]`` float32 in [0, 1] (crop, rendering) -> ``delta [batch, 9]``; dynamic batch,
@@ -13,6 +13,11 @@
   detections at 640x480 in onnxruntime); while exporting it is replaced by
   :func:`paste_masks_separable`, the same bilinear resize-and-place written as two batched matrix
   products.
+- Coarse scorer (:class:`~cosy_lite.nets.appearance_scorer.AppearanceScorer`, ``start="appearance"``):
+  ``crops [batch, 3, 64, 64]`` float32 in [0, 1] (the detection, turned and cut as the templates
+  are) -> ``descriptors [batch, D]``; its trunk, template shading and ``iou_weight`` go into the
+  metadata. The templates' descriptors stay those of the frozen trunk, rendered and cached once
+  at run time.
 
 Each file gets ``metadata_props`` (:data:`~cosy_lite.export.manifest.META_KEYS`) and passes
 ``onnx.checker``; :func:`export_models` writes the folder and its ``manifest.json``.
@@ -26,7 +31,7 @@ import warnings
 from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence, cast
 
 import numpy as np
 import torch
@@ -34,6 +39,8 @@ from torch import Tensor, nn
 
 from cosy_lite.export.manifest import (
     POSE_INPUT_CHANNELS,
+    SCORER_INPUT_CHANNELS,
+    SCORER_KIND,
     Manifest,
     ModelEntry,
     file_digest,
@@ -43,11 +50,13 @@ from cosy_lite.export.manifest import (
 
 if TYPE_CHECKING:
     from cosy_lite.nets.detector import Detector
+    from cosy_lite.weights.loaders import ScorerModel
 
 OPSET = 17  # >= 11 for Mask R-CNN (NMS, RoiAlign); 17 is what the legacy exporter knows well
 POSE_INPUT, POSE_OUTPUT = "images", "delta"
 DETECTOR_INPUT = "image"
 DETECTOR_OUTPUTS = ("boxes", "labels", "scores", "masks")
+SCORER_INPUT, SCORER_OUTPUT = "crops", "descriptors"
 CHECK_BATCH = 2
 
 
@@ -90,13 +99,38 @@ def export_pose_net(net: nn.Module, path: str | Path, kind: str, crop_resolution
     entry = ModelEntry(file=path.name, kind=kind, obj_ids=sorted(int(i) for i in obj_ids), input_name=POSE_INPUT,
                        input_shape=["batch", POSE_INPUT_CHANNELS, h, w], crop_resolution=[h, w], opset=opset,
                        source=str(source))
-    entry = _finish(path, entry, dict(config or {}))
+    return _checked(_finish(path, entry, dict(config or {})), path, module, {POSE_INPUT: x})
+
+
+def _checked(entry: ModelEntry, path: Path, module: nn.Module, feeds: dict[str, Tensor]) -> ModelEntry:
+    """``entry`` with its ``check``: max |torch - onnxruntime| of ``module`` on ``feeds``."""
     with torch.no_grad():
-        ref = module(x).numpy()
-    out = _run_once(path, {POSE_INPUT: x.numpy()})[0]
+        ref = module(*feeds.values()).numpy()
+    out = _run_once(path, {k: v.numpy() for k, v in feeds.items()})[0]
     entry.check = {"batch": CHECK_BATCH, "max_abs_diff": float(np.abs(out - ref).max()),
                    "max_abs_output": float(np.abs(ref).max())}
     return entry
+
+
+def export_scorer(scorer: ScorerModel, path: str | Path, source: str = "", opset: int = OPSET,
+                  seed: int = 0) -> ModelEntry:
+    """Write a coarse scorer (:func:`~cosy_lite.weights.loaders.load_scorer`) to ``path``: ``crops
+    [batch, 3, S, S]`` -> ``descriptors [batch, D]``; returns its manifest entry (``check`` as
+    :func:`export_pose_net`). Its trunk, template shading and ``iou_weight`` go into the metadata."""
+    from cosy_lite.nets.appearance_templates import CROP_SIZE
+
+    path = Path(path)
+    module = copy.deepcopy(scorer.net).float().cpu().eval()
+    x = torch.rand(CHECK_BATCH, SCORER_INPUT_CHANNELS, CROP_SIZE, CROP_SIZE,
+                   generator=torch.Generator().manual_seed(seed))
+    _legacy_export(module, (x,), path, opset=opset, input_names=[SCORER_INPUT], output_names=[SCORER_OUTPUT],
+                   dynamic_axes={SCORER_INPUT: {0: "batch"}, SCORER_OUTPUT: {0: "batch"}})
+    entry = ModelEntry(file=path.name, kind=SCORER_KIND, obj_ids=list(scorer.obj_ids), input_name=SCORER_INPUT,
+                       input_shape=["batch", SCORER_INPUT_CHANNELS, CROP_SIZE, CROP_SIZE],
+                       crop_resolution=[CROP_SIZE, CROP_SIZE], opset=opset, source=str(source))
+    config = {"trunk": str(module.trunk_name), "template_shading": scorer.shading,
+              "iou_weight": float(cast(Tensor, module.iou_weight))}
+    return _checked(_finish(path, entry, config), path, module, {SCORER_INPUT: x})
 
 
 def export_detector(detector: Detector, path: str | Path, source: str = "", opset: int = OPSET,
@@ -189,18 +223,18 @@ def _pose_net_from_checkpoint(path: Path, kind: str) -> tuple[nn.Module, tuple[i
 
 def export_models(out_dir: str | Path, detector: str | Path | None = None, coarse: str | Path | None = None,
                   refiner: str | Path | None = None, quantize: str | None = None, opset: int = OPSET,
-                  inference: dict[str, Any] | None = None) -> Manifest:
+                  inference: dict[str, Any] | None = None, scorer: str | Path | None = None) -> Manifest:
     """Export the given checkpoints into ``out_dir`` (``detector.onnx``, ``coarse.onnx``,
-    ``refiner.onnx``; with ``quantize="int8"`` also ``coarse.int8.onnx``, ``refiner.int8.onnx``)
-    and write ``manifest.json`` with ``inference``, how they are meant to run (InferenceConfig's
-    fields, e.g. a reference set's; None: the defaults).
-    At least one checkpoint is needed.
+    ``refiner.onnx``, ``scorer.onnx``; with ``quantize="int8"`` also ``coarse.int8.onnx``,
+    ``refiner.int8.onnx``) and write ``manifest.json`` with ``inference``, how they are meant to
+    run (InferenceConfig's fields, e.g. a reference set's; None: the defaults).
+    At least one pose or detector checkpoint is needed (a scorer alone poses nothing).
 
     Raises CheckpointError naming a checkpoint that is missing, unreadable, refused (not
     weights-only) or of the wrong kind; every checkpoint is checked before a file is written.
     """
     from cosy_lite.export.quantize import QUANTIZERS
-    from cosy_lite.weights.loaders import load_detector
+    from cosy_lite.weights.loaders import load_detector, load_scorer
 
     if detector is None and coarse is None and refiner is None:
         raise ValueError("nothing to export: give at least one of detector, coarse, refiner")
@@ -210,6 +244,7 @@ def export_models(out_dir: str | Path, detector: str | Path | None = None, coars
     det_model = load_detector(detector) if detector is not None else None
     pose = {kind: _pose_net_from_checkpoint(Path(ckpt), kind)
             for kind, ckpt in (("coarse", coarse), ("refiner", refiner)) if ckpt is not None}
+    scorer_model = load_scorer(scorer) if scorer is not None else None
     sources = {"coarse": coarse, "refiner": refiner}
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -223,6 +258,8 @@ def export_models(out_dir: str | Path, detector: str | Path | None = None, coars
             entries[f"{kind}.{quantize}"] = QUANTIZERS[quantize](out_dir / f"{kind}.onnx",
                                                                  out_dir / f"{kind}.{quantize}.onnx", entries[kind],
                                                                  config)
+    if scorer_model is not None:
+        entries[SCORER_KIND] = export_scorer(scorer_model, out_dir / "scorer.onnx", str(scorer), opset)
     manifest = Manifest(out_dir, entries, inference=dict(inference or {}))
     manifest.write()
     return manifest

@@ -20,9 +20,8 @@ from cosy_lite.nets.silhouette_templates import SilhouetteTemplates
 from cosy_lite.weights.loaders import PoseModel
 
 if TYPE_CHECKING:
-    from torch import nn
-
     from cosy_lite.bop.dataset import BopDataset
+    from cosy_lite.nets.appearance_templates import Scorer
     from cosy_lite.nets.object_table import ObjectTable
     from cosy_lite.render.renderer import MeshRenderer
 
@@ -118,9 +117,10 @@ def objects_and_renderer(models: ObjectMeshes, ids: list[int], n_points: int | N
 
 
 def start_templates(start: str, models: ObjectMeshes, objects: ObjectTable, renderer: MeshRenderer,
-                    cache_dir: str | Path | None, scorer: nn.Module | None = None) -> SilhouetteTemplates | None:
+                    cache_dir: str | Path | None, scorer: Scorer | None = None) -> SilhouetteTemplates | None:
     """The templates of a template start (``"templates"``, ``"appearance"``: with appearance
-    descriptors, and the trained ``scorer`` describing the detections when given; None otherwise),
+    descriptors, and the trained ``scorer`` (torch or onnxruntime) describing the detections when
+    given; None otherwise),
     cached in ``cache_dir`` by the hash of each object's mesh file
     (:func:`~cosy_lite.nets.appearance_templates.object_templates`)."""
     if start not in TEMPLATE_STARTS:

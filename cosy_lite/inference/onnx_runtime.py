@@ -5,6 +5,8 @@
   drops into :func:`~cosy_lite.nets.render_and_compare.iterate_poses`).
 - :class:`OnnxDetector`: ``rgb [H,W,3]`` uint8 -> boxes, obj_ids, scores, masks (numpy,
   :meth:`~OnnxDetector.run`) or :class:`~cosy_lite.bop.detections.Detections` (:meth:`~OnnxDetector.detect`).
+- :class:`OnnxScorer`: the coarse scorer, ``crops [B,3,64,64]`` -> ``descriptors [B,D]`` (tensor in,
+  tensor out), with the ``iou_weight`` and template shading it was trained with.
 - :func:`load_onnx_models`: an export folder (``manifest.json`` + ``.onnx`` files) -> these
   sessions, the pose networks as :class:`~cosy_lite.weights.loaders.PoseModel` (precision fp32
   or int8), in :class:`OnnxModels`.
@@ -32,6 +34,8 @@ from cosy_lite.export.manifest import (
     POSE_INPUT_CHANNELS,
     POSE_KINDS,
     REQUIRED_META,
+    SCORER_INPUT_CHANNELS,
+    SCORER_KIND,
     Manifest,
     ModelEntry,
     OnnxModelError,
@@ -245,6 +249,57 @@ class OnnxDetector:
         return str(self.path)
 
 
+class OnnxScorer:
+    """The coarse scorer of ``start="appearance"`` in onnxruntime: ``crops [B,3,S,S]`` float32 in
+    [0, 1] (a torch tensor, as :func:`~cosy_lite.nets.appearance_templates.detection_crop` cuts
+    them) -> ``descriptors [B,D]`` (a tensor), as the torch :class:`~cosy_lite.nets.appearance_scorer.AppearanceScorer`.
+
+    Args: as :class:`OnnxPoseNet`. Attributes: obj_ids, crop_size (S), shading (how the templates
+    it was trained against were rendered), iou_weight (float: the silhouette's share of the
+    score), path.
+    """
+
+    def __init__(self, path: str | Path, threads: int | None = None, entry: ModelEntry | None = None,
+                 name: str = SCORER_KIND, spinning: bool = False):
+        self.path = Path(path)
+        self.session = open_session(self.path, threads, spinning)
+        meta = _metadata(self.session, self.path)
+        if meta["cosy_lite.kind"] != SCORER_KIND:
+            raise OnnxModelError(self.path, "metadata_props[cosy_lite.kind]",
+                                 f"{meta['cosy_lite.kind']!r}, expected {SCORER_KIND!r}")
+        self.obj_ids = [int(i) for i in parse_json_meta(meta, "cosy_lite.obj_ids", self.path)]
+        crop = parse_json_meta(meta, "cosy_lite.crop_resolution", self.path)
+        config = parse_json_meta(meta, "cosy_lite.config", self.path)
+        _check_against(self.path, entry, name, {"cosy_lite.kind": SCORER_KIND, "cosy_lite.obj_ids": self.obj_ids,
+                                                "cosy_lite.crop_resolution": crop})
+        try:
+            self.shading, self.iou_weight = str(config["template_shading"]), float(config["iou_weight"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise OnnxModelError(self.path, "metadata_props[cosy_lite.config]",
+                                 f"needs template_shading and a numeric iou_weight ({type(e).__name__}: {e})") from None
+        self.crop_size = int(crop[0])
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        expected = [SCORER_INPUT_CHANNELS, self.crop_size, self.crop_size]
+        if len(inputs) != 1 or len(outputs) != 1 or list(inputs[0].shape)[1:] != expected or len(outputs[0].shape) != 2:
+            raise OnnxModelError(self.path, "graph inputs/outputs", f"{[(i.name, i.shape) for i in inputs]} -> "
+                                 f"{[(o.name, o.shape) for o in outputs]}, expected crops [batch, "
+                                 f"{', '.join(map(str, expected))}] -> descriptors [batch, D]")
+        self.input_name = inputs[0].name
+
+    def __call__(self, crops: Any) -> Any:
+        """``crops [B,3,S,S]`` (torch tensor) -> ``descriptors [B,D]`` float32 (torch tensor, on the CPU)."""
+        import torch
+
+        x = np.ascontiguousarray(crops.detach().to("cpu", torch.float32).numpy())
+        if x.ndim != 4 or list(x.shape[1:]) != [SCORER_INPUT_CHANNELS, self.crop_size, self.crop_size]:
+            raise ValueError(f"{self.path.name}: crops must be [B,{SCORER_INPUT_CHANNELS},{self.crop_size},"
+                             f"{self.crop_size}], got {x.shape}")
+        return torch.from_numpy(self.session.run(None, {self.input_name: x})[0])
+
+    def describe(self) -> str:
+        return str(self.path)
+
+
 # precision -> suffix of the manifest entry names of the pose networks
 ONNX_FILE_SUFFIXES: dict[str, str] = {"fp32": "", "int8": ".int8"}
 
@@ -258,6 +313,7 @@ class OnnxModels:
     refiner: PoseModel | None
     detector: OnnxDetector | None
     manifest: Manifest
+    scorer: OnnxScorer | None = None  # None: start="appearance" describes detections with the frozen trunk
 
 
 def load_onnx_models(root: str | Path, threads: int | None = None, precision: str = "fp32",
@@ -269,7 +325,8 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
     Args:
         threads: intra-op threads of each session (None: onnxruntime's default).
         precision: "fp32", or "int8" for the quantised pose networks (``--quantize int8`` exports).
-        detector: load ``detector.onnx`` when the folder has one.
+        detector: load ``detector.onnx`` when the folder has one (``scorer.onnx`` is loaded whenever
+            the folder has one).
     Raises OnnxModelError naming the file and field: no manifest, a listed file missing, truncated
     or replaced, not loadable, or its metadata not matching the manifest (kind, obj_ids, crop size,
     6 input channels); no pose model at all.
@@ -301,4 +358,7 @@ def load_onnx_models(root: str | Path, threads: int | None = None, precision: st
     det = None
     if detector and manifest.entry("detector") is not None:
         det = OnnxDetector(manifest.file("detector"), threads, manifest.models["detector"], "detector", spinning)
-    return OnnxModels(pose["coarse"], pose["refiner"], det, manifest)
+    scorer = None
+    if manifest.entry(SCORER_KIND) is not None:
+        scorer = OnnxScorer(manifest.file(SCORER_KIND), threads, manifest.models[SCORER_KIND], SCORER_KIND, spinning)
+    return OnnxModels(pose["coarse"], pose["refiner"], det, manifest, scorer)

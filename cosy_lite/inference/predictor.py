@@ -23,8 +23,8 @@ Robot users: ``Predictor.from_checkpoints(coarse=..., refiner=..., models_dir=..
 ``predict(rgb, K)``; no dataset needed, only the BOP ``models/`` folder of the objects (PLY in mm
 + ``models_info.json``). Poses are object-to-camera in metres. Exported networks (``cosy-lite
 export``): ``Predictor.from_onnx(export_dir, models_dir=...)`` runs the same pipeline with the
-three networks in onnxruntime and everything around them (crops, renders, pose updates, ICP) in
-the one render-and-compare loop of the torch pipeline.
+networks (detector, coarse network or coarse scorer, refiner) in onnxruntime and everything around
+them (crops, renders, pose updates, ICP) in the one render-and-compare loop of the torch pipeline.
 """
 
 from __future__ import annotations
@@ -104,13 +104,20 @@ def _load_scorer(path: str | Path, start: str, obj_ids: Sequence[int], renderer:
     if start != "appearance":
         raise SetupError(f"{path}: a coarse scorer ranks the templates of start='appearance', not start={start!r}")
     scorer = load_scorer(path)
-    if missing := sorted(set(obj_ids) - set(scorer.obj_ids)):
-        raise SetupError(f"{path}: the scorer was not trained on obj_ids {missing} (it knows {scorer.obj_ids})")
-    shading = getattr(renderer, "shading", None)
-    if shading != scorer.shading:
-        raise SetupError(f"{path}: the scorer was trained against templates rendered with {scorer.shading!r} shading, "
-                         f"but this pipeline renders with {shading!r} (the refiner's render_shading)")
+    _check_scorer(path, scorer.obj_ids, scorer.shading, obj_ids, renderer)
     return inference_net(scorer.net, torch.device("cpu"), True, fuse_bn, (2, 3, CROP_SIZE, CROP_SIZE))
+
+
+def _check_scorer(path: str | Path, known: Sequence[int], shading: str, obj_ids: Sequence[int],
+                  renderer: MeshRenderer) -> None:
+    """SetupError naming the scorer file ``path`` unless it was trained on all ``obj_ids`` (it
+    ``known`` ones) against templates rendered with the ``shading`` ``renderer`` renders with."""
+    if missing := sorted(set(obj_ids) - set(known)):
+        raise SetupError(f"{path}: the scorer was not trained on obj_ids {missing} (it knows {list(known)})")
+    rendered = getattr(renderer, "shading", None)
+    if rendered != shading:
+        raise SetupError(f"{path}: the scorer was trained against templates rendered with {shading!r} shading, "
+                         f"but this pipeline renders with {rendered!r} (the refiner's render_shading)")
 
 
 Choice: TypeAlias = Callable[[Tensor | None], Tensor]  # the refiner's confidence [N] (None: none ran) -> kept indices
@@ -303,7 +310,8 @@ class Predictor:
 
         Args:
             export_dir: folder with ``manifest.json``, ``coarse.onnx`` [, ``refiner.onnx``,
-                ``detector.onnx``, ``*.int8.onnx``]; no checkpoint is needed (object ids, crop
+                ``detector.onnx``, ``scorer.onnx`` (describes the detections of ``start="appearance"``;
+                without it the frozen trunk does), ``*.int8.onnx``]; no checkpoint is needed (object ids, crop
                 sizes, the label map and the inference settings are in the manifest and the files' metadata).
             models_dir / dataset: the objects' BOP ``models/`` folder, or a dataset (as
                 :meth:`from_checkpoints`).
@@ -317,7 +325,8 @@ class Predictor:
             templates_cache: as :meth:`from_checkpoints`.
         Raises OnnxModelError naming the file and field (missing / truncated / mismatched files,
         see :func:`~cosy_lite.inference.onnx_runtime.load_onnx_models`), SetupError when the exported
-        models or the object models do not cover the objects.
+        models or the object models do not cover the objects, or the scorer was trained against
+        templates shaded otherwise than the refiner renders.
         """
         from cosy_lite.export.manifest import Manifest, OnnxModelError
         from cosy_lite.inference.onnx_runtime import load_onnx_models
@@ -345,7 +354,10 @@ class Predictor:
         check_fine_crops(config, onnx.refiner)  # (before the templates are rendered)
         objects, renderer, syms = objects_and_renderer(meshes, ids, n_points, config.icp,
                                                     render_shading(onnx.coarse, onnx.refiner))
-        templates = start_templates(config.start, meshes, objects, renderer, templates_cache)
+        scorer = onnx.scorer if config.start == "appearance" else None  # (unused by other starts)
+        if scorer is not None:
+            _check_scorer(scorer.path, scorer.obj_ids, scorer.shading, ids, renderer)
+        templates = start_templates(config.start, meshes, objects, renderer, templates_cache, scorer)
         return cls(onnx.coarse, onnx.refiner, objects, renderer, onnx.detector, config, syms, "cpu", templates)
 
     @property

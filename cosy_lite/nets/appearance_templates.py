@@ -27,7 +27,7 @@ import hashlib
 import os
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence, cast
+from typing import TYPE_CHECKING, Callable, Sequence, TypeAlias
 
 import cv2
 import numpy as np
@@ -45,6 +45,10 @@ CROP_SIZE = 64  # px: the square each template and detection is described at
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 RENDER_BATCH = 256
+
+# describes the detections for a trained scorer: crops [B,3,S,S] in [0, 1] -> descriptors [B,D], with an
+# iou_weight (the silhouette's share of the score); an AppearanceScorer or its onnxruntime session (OnnxScorer)
+Scorer: TypeAlias = Callable[[Tensor], Tensor]
 
 
 def square_crops(images: np.ndarray, masks: np.ndarray, boxes: np.ndarray, size: int = CROP_SIZE) -> Tensor:
@@ -99,21 +103,25 @@ class AppearanceTemplates:
         descriptor: an :class:`AppearanceDescriptor` (default: built, ImageNet weights read once).
         iou_weight: weight of the silhouette soft IoU in the score (with a ``scorer``: its own).
         cache_dir, model_keys: as :class:`SilhouetteTemplates` (descriptors kept as float16 ``.npz``).
-        scorer: a trained :class:`~cosy_lite.nets.appearance_scorer.AppearanceScorer` that
-            describes the detections (the templates keep the frozen ``descriptor``); None: the
-            frozen descriptor on both sides.
+        scorer: a trained :class:`~cosy_lite.nets.appearance_scorer.AppearanceScorer` (or its
+            onnxruntime session, :class:`~cosy_lite.inference.onnx_runtime.OnnxScorer`: crops in,
+            descriptors out, with an ``iou_weight``) that describes the detections (the templates
+            keep the frozen ``descriptor``); None: the frozen descriptor on both sides.
     """
 
     def __init__(self, silhouettes: SilhouetteTemplates, renderer: Renderer, descriptor: AppearanceDescriptor | None = None,
                  iou_weight: float = 0.5, cache_dir: str | Path | None = None, model_keys: dict[int, str] | None = None,
-                 scorer: nn.Module | None = None):
+                 scorer: Scorer | None = None):
         self.silhouettes = silhouettes
         self.renderer = renderer
         # built here, the frozen descriptor runs BatchNorm folded: the same descriptors, the templates described faster
         self.descriptor = descriptor or batchnorm_folded(AppearanceDescriptor(), (2, 3, CROP_SIZE, CROP_SIZE))
-        self.scorer = None if scorer is None else scorer.eval()
-        # an AppearanceScorer's iou_weight is an nn.Parameter
-        self.iou_weight = float(iou_weight) if scorer is None else float(cast(Tensor, scorer.iou_weight).detach())
+        if isinstance(scorer, nn.Module):
+            scorer.eval()
+        self.scorer = scorer
+        # the scorer's own: an AppearanceScorer's nn.Parameter, an OnnxScorer's float
+        self.iou_weight = (float(iou_weight) if scorer is None
+                           else float(torch.as_tensor(getattr(scorer, "iou_weight")).detach()))  # noqa: B009 (a Callable)
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.model_keys = {int(k): str(v) for k, v in (model_keys or {}).items()}
         self._cache: dict[int, Tensor] = {}
@@ -171,7 +179,7 @@ class AppearanceTemplates:
 
 
 def object_templates(renderer: MeshRenderer, obj_ids: Sequence[int], diameters: Sequence[float], models_dir: str | Path,
-                     cache_dir: str | Path | None, appearance: bool = True, scorer: nn.Module | None = None,
+                     cache_dir: str | Path | None, appearance: bool = True, scorer: Scorer | None = None,
                      n_rotations: int = 2048) -> SilhouetteTemplates:
     """The silhouette templates of ``obj_ids`` (``diameters`` in m), with their appearance scorer
     attached when ``appearance`` (the trained ``scorer`` describing detections when given); with a
