@@ -162,3 +162,23 @@ def test_points_behind_camera_give_finite_boxes():
     box = crop_boxes(TCO, K_YCBV.float()[None], _box_points().float()[None])
     assert bool(torch.isfinite(box).all())
     assert math.isclose(float((box[0, 2] - box[0, 0]) / (box[0, 3] - box[0, 1])), 4 / 3, rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("n_boxes", [1, 2, 5])
+def test_crops_split_over_threads_equal_one_thread(n_boxes):
+    """Outside autograd (inference mode too) the bilinear crops run on torch's threads: the same numbers
+    as on one thread; with autograd on they are one roi_align call, whose gradient reaches the image."""
+    g = torch.Generator().manual_seed(n_boxes)
+    images = torch.rand(n_boxes, 3, 60, 80, generator=g)
+    boxes = torch.rand(n_boxes, 2, generator=g) * 30 + torch.tensor([[0.0, 0.0]])
+    boxes = torch.cat([boxes, boxes + torch.tensor([40.0, 30.0])], dim=1)
+    one = crop_images(images, boxes, (24, 32))  # (the tests run on one thread)
+    torch.set_num_threads(2)  # (restored by conftest)
+    with torch.inference_mode():
+        split = crop_images(images.clone(), boxes, (24, 32))
+    assert split.shape == (n_boxes, 3, 24, 32) and torch.equal(split, one)
+    with torch.no_grad():
+        assert torch.equal(crop_images(images, boxes, (24, 32)), one)
+    x = images.clone().requires_grad_(True)
+    crop_images(x, boxes, (24, 32)).sum().backward()
+    assert x.grad is not None and float(x.grad.abs().sum()) > 0

@@ -23,6 +23,8 @@ contain another box (e.g. a detection).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 from typing import Callable, cast
 
 import torch
@@ -126,12 +128,37 @@ def _sample_grid(boxes: Tensor, crop_resolution: Size) -> tuple[Tensor, Tensor]:
     return boxes[:, 0:1] + j * sx, boxes[:, 1:2] + i * sy
 
 
+@lru_cache(maxsize=None)
+def _crop_threads(n: int) -> ThreadPoolExecutor:
+    """``n`` threads that crop in parallel (made on first use, kept for the process)."""
+    return ThreadPoolExecutor(n, thread_name_prefix="cosy-lite-crops")
+
+
 def _crop_bilinear(images: Tensor, boxes: Tensor, crop_resolution: Size, sampling_ratio: int) -> Tensor:
     if not images.is_floating_point():
         raise ValueError(f"bilinear crops need floating images, got {images.dtype} (use mode='nearest' for masks)")
     idx = torch.arange(len(boxes), dtype=images.dtype, device=images.device)[:, None]
     rois = torch.cat([idx, boxes.to(images.dtype)], dim=1)
-    return roi_align(images, rois, output_size=crop_resolution, spatial_scale=1.0, sampling_ratio=sampling_ratio, aligned=True)
+
+    def crop(r: Tensor) -> Tensor:
+        return roi_align(images, r, output_size=crop_resolution, spatial_scale=1.0, sampling_ratio=sampling_ratio,
+                         aligned=True)
+
+    # torchvision's CPU roi_align runs on one thread: outside autograd, the crops are split over torch's
+    # threads (the op releases the GIL; each crop is computed alone, so the result is the same)
+    n = min(torch.get_num_threads(), len(rois))
+    if n < 2 or torch.is_grad_enabled() or images.device.type != "cpu":
+        return crop(rois)
+    parts = list(_crop_threads(n).map(_no_grad(crop), torch.tensor_split(rois, n)))
+    return torch.cat(parts)
+
+
+def _no_grad(f: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
+    """``f`` under ``torch.no_grad`` in whichever thread runs it (grad mode is per thread)."""
+    def run(x: Tensor) -> Tensor:
+        with torch.no_grad():
+            return f(x)
+    return run
 
 
 def _crop_nearest(images: Tensor, boxes: Tensor, crop_resolution: Size, sampling_ratio: int) -> Tensor:
