@@ -311,6 +311,21 @@ def test_mismatched_manifest_gives_errors_naming_file_and_field(export, tmp_path
     root = edited("scorer_shape", lambda m: m["scorer"].update(input_shape=["batch", 6, 64, 64]))
     with pytest.raises(OnnxModelError, match=r"manifest.json \[models.scorer.input_shape\]"):
         load_onnx_models(root, threads=1)
+    # the scorer file's own metadata: no iou_weight, a NaN one, a crop size that is not a square
+    from cosy_lite.export.manifest import write_metadata
+    from cosy_lite.inference.onnx_runtime import OnnxScorer
+
+    model = onnx.load(str(export["models"] / "scorer.onnx"))
+    meta = {p.key: p.value for p in model.metadata_props}
+    for key, value, field in [("cosy_lite.config", '{"template_shading": "headlight"}', "config"),
+                              ("cosy_lite.config", '{"template_shading": "headlight", "iou_weight": NaN}', "config"),
+                              ("cosy_lite.crop_resolution", "[64, 48]", "crop_resolution")]:
+        path = tmp_path / f"scorer_{field}_{len(value)}.onnx"
+        shutil.copy(export["models"] / "scorer.onnx", path)
+        write_metadata(path, {**meta, key: value})
+        with pytest.raises(OnnxModelError) as e:
+            OnnxScorer(path, threads=1)
+        assert e.value.path == str(path) and e.value.field == f"metadata_props[cosy_lite.{field}]"
 
 
 def test_a_graph_with_three_input_channels_is_refused(tmp_path):

@@ -23,6 +23,7 @@ the file and the field.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -272,12 +273,16 @@ class OnnxScorer:
         config = parse_json_meta(meta, "cosy_lite.config", self.path)
         _check_against(self.path, entry, name, {"cosy_lite.kind": SCORER_KIND, "cosy_lite.obj_ids": self.obj_ids,
                                                 "cosy_lite.crop_resolution": crop})
-        try:
-            self.shading, self.iou_weight = str(config["template_shading"]), float(config["iou_weight"])
-        except (KeyError, TypeError, ValueError) as e:
-            raise OnnxModelError(self.path, "metadata_props[cosy_lite.config]",
-                                 f"needs template_shading and a numeric iou_weight ({type(e).__name__}: {e})") from None
-        self.crop_size = int(crop[0])
+        if not (isinstance(crop, list) and len(crop) == 2 and crop[0] == crop[1] and isinstance(crop[0], int)
+                and crop[0] > 0):
+            raise OnnxModelError(self.path, "metadata_props[cosy_lite.crop_resolution]",
+                                 f"{crop!r}, expected [S, S] (the square crops the scorer describes)")
+        weight = config.get("iou_weight") if isinstance(config, dict) else None
+        if not (isinstance(config, dict) and isinstance(config.get("template_shading"), str)
+                and isinstance(weight, (int, float)) and math.isfinite(weight)):
+            raise OnnxModelError(self.path, "metadata_props[cosy_lite.config]", f"{str(config)[:200]}: expected "
+                                 "template_shading (a string) and a finite iou_weight (not a cosy_lite scorer export?)")
+        self.shading, self.iou_weight, self.crop_size = str(config["template_shading"]), float(weight), crop[0]
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
         expected = [SCORER_INPUT_CHANNELS, self.crop_size, self.crop_size]
         if len(inputs) != 1 or len(outputs) != 1 or list(inputs[0].shape)[1:] != expected or len(outputs[0].shape) != 2:
