@@ -442,6 +442,12 @@ def test_exported_scorer_describes_the_detections_as_the_torch_scorer(tiny_synth
     # other starts do not use it
     assert Predictor.from_onnx(tmp_path / "flat", dataset=ds, threads=1,
                                config=InferenceConfig(start="templates")).templates.appearance is None
+    # an export without a scorer (made before there was one): the frozen trunk, and a warning naming the manifest
+    export_models(tmp_path / "none", refiner=export["refiner"])
+    with pytest.warns(UserWarning, match=r"none/manifest.json: no scorer.onnx, so the frozen ImageNet trunk"):
+        old = Predictor.from_onnx(tmp_path / "none", dataset=ds, threads=1, config=config)
+    assert old.templates.appearance.scorer is None
+    assert float((old.templates.appearance.describe(rgb, view, K) - frozen_d).abs().max()) <= 1e-5
 
 
 def test_fine_refiner_iterations_need_a_refiner_graph_of_any_crop_size(tiny_synth_root, export):
