@@ -165,20 +165,29 @@ def test_points_behind_camera_give_finite_boxes():
 
 
 @pytest.mark.parametrize("n_boxes", [1, 2, 5])
-def test_crops_split_over_threads_equal_one_thread(n_boxes):
-    """Outside autograd (inference mode too) the bilinear crops run on torch's threads: the same numbers
-    as on one thread; with autograd on they are one roi_align call, whose gradient reaches the image."""
+def test_crops_split_over_threads_equal_one_thread(n_boxes, monkeypatch):
+    """Outside autograd (inference mode, no_grad) the bilinear crops of 2 boxes or more are split over
+    torch's threads, with the same numbers as on one thread; with autograd on they are one roi_align
+    call on the calling thread, whose gradient reaches the image."""
+    from cosy_lite.geometry import crops
+
+    pools: list[int] = []  # the thread count of each split
+    real = crops._crop_threads
+    monkeypatch.setattr(crops, "_crop_threads", lambda n: pools.append(n) or real(n))
     g = torch.Generator().manual_seed(n_boxes)
     images = torch.rand(n_boxes, 3, 60, 80, generator=g)
-    boxes = torch.rand(n_boxes, 2, generator=g) * 30 + torch.tensor([[0.0, 0.0]])
+    boxes = torch.rand(n_boxes, 2, generator=g) * 30
     boxes = torch.cat([boxes, boxes + torch.tensor([40.0, 30.0])], dim=1)
     one = crop_images(images, boxes, (24, 32))  # (the tests run on one thread)
+    assert pools == []
     torch.set_num_threads(2)  # (restored by conftest)
     with torch.inference_mode():
         split = crop_images(images.clone(), boxes, (24, 32))
     assert split.shape == (n_boxes, 3, 24, 32) and torch.equal(split, one)
     with torch.no_grad():
         assert torch.equal(crop_images(images, boxes, (24, 32)), one)
+    assert pools == ([] if n_boxes == 1 else [2, 2])
     x = images.clone().requires_grad_(True)
     crop_images(x, boxes, (24, 32)).sum().backward()
     assert x.grad is not None and float(x.grad.abs().sum()) > 0
+    assert len(pools) == (0 if n_boxes == 1 else 2)  # not split with autograd on
