@@ -504,15 +504,18 @@ def test_infer_runs_a_split_with_the_exported_detector(tiny_synth_root, export, 
     assert {r.obj_id for r in rows} <= set(OBJ_IDS)
 
 
-def test_flow_refiner_exports_and_gives_the_torch_poses(tiny_synth_root, tmp_path):
-    """A flow refiner (net.arch=flow) through infer.py: checkpoints vs their ONNX export (the numpy
-    solver on the onnxruntime path), oracle boxes, coarse + 1 refiner iteration: the same poses (a
-    random flow network's field is rough, so the solver amplifies the ~1e-6 network differences)."""
+@pytest.mark.parametrize("stride", [8, 4])
+def test_flow_refiner_exports_and_gives_the_torch_poses(tiny_synth_root, tmp_path, stride):
+    """A flow refiner (net.arch=flow, net.flow_stride 8 or 4) through infer.py: checkpoints vs their ONNX
+    export (the numpy solver on the onnxruntime path), oracle boxes, coarse + 1 refiner iteration: the
+    same poses (a random flow network's field is rough, so the solver amplifies the ~1e-6 network
+    differences)."""
     import infer
     from cosy_lite.bop.results import read_results_csv
     from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
 
-    cfg = PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[48, 64], corr_radius=2, width=16)
+    cfg = PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[48, 64], corr_radius=2, width=16,
+                        flow_stride=stride)
     torch.manual_seed(3)
     net = build_pose_net(cfg, "refiner", load_weights=False).eval()
     for m in net.modules():

@@ -9,7 +9,7 @@ import torch
 from cosy_lite.errors import ConfigError
 from cosy_lite.geometry.rotations import rotation_angle_deg
 from cosy_lite.nets.flow_pose_net import FlowPoseNet, flow_from_cost, local_cost_volume
-from cosy_lite.nets.flow_pose_solver import MIN_CELLS, pose_from_flow, solve_pose, weighted_cells
+from cosy_lite.nets.flow_pose_solver import MIN_CELLS, flow_stride, pose_from_flow, solve_pose, weighted_cells
 from cosy_lite.nets.flow_targets import FlowTargets, flow_loss, flow_targets
 from cosy_lite.nets.initial_pose import add_pose_noise
 from cosy_lite.weights.pose_nets import PoseNetConfig, build_pose_net
@@ -57,16 +57,19 @@ def test_cost_volume_and_soft_argmax_find_the_displacement():
     assert (inner[2] > 0.999).all()  # one sharp peak: confident
 
 
-def test_targets_give_the_gt_pose_back_through_the_solver():
+@pytest.mark.parametrize("stride", [8, 4])
+def test_targets_give_the_gt_pose_back_through_the_solver(stride):
     """GT flow of every rendered cell, fed to the PnP solver, returns the GT pose (to ~1e-6)."""
     gt, noisy = _poses(3)
     K = _K(3)
     depth = _sphere_depth(noisy, K)
     visible = torch.ones(3, H, W, dtype=torch.bool)
-    t = flow_targets(depth, K, noisy, gt, visible, S)
-    assert t.flow.shape == (3, H // S, W // S, 2) and t.valid.sum() > 3 * 20
-    flow = torch.cat([t.flow.permute(0, 3, 1, 2).double(), torch.ones(3, 1, H // S, W // S, dtype=torch.float64)], 1)
-    new = pose_from_flow(noisy, K, depth, flow, S)
+    t = flow_targets(depth, K, noisy, gt, visible, stride)
+    assert t.flow.shape == (3, H // stride, W // stride, 2) and t.valid.sum() > 3 * 20 * (8 // stride) ** 2
+    flow = torch.cat([t.flow.permute(0, 3, 1, 2).double(),
+                      torch.ones(3, 1, H // stride, W // stride, dtype=torch.float64)], 1)
+    assert flow_stride(depth, flow) == stride
+    new = pose_from_flow(noisy, K, depth, flow, stride)
     assert rotation_angle_deg(noisy[:, :3, :3], gt[:, :3, :3]).min() > 2  # there was something to correct
     assert rotation_angle_deg(new[:, :3, :3], gt[:, :3, :3]).max() < 1e-3
     assert (new[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1).max() < 1e-6
@@ -189,6 +192,50 @@ def test_network_shapes_training_step_and_onnx(tmp_path):
         np.testing.assert_allclose(sess.run(None, {"images": xb.numpy()})[0], net(xb).detach().numpy(), atol=2e-3)  # px
 
 
+def test_flow_stride_is_read_from_the_shapes_and_a_field_of_another_size_is_refused():
+    depth = torch.zeros(2, 1, H, W)
+    assert flow_stride(depth, torch.zeros(2, 3, H // 8, W // 8)) == 8
+    assert flow_stride(depth, torch.zeros(2, 4, H // 4, W // 4)) == 4
+    for h, w in ((H // 2, W // 2), (H // 8, W // 4), (H // 16, W // 16), (0, 0)):
+        with pytest.raises(ValueError, match="not a stride-4/8 field"):
+            flow_stride(depth, torch.zeros(2, 3, h, w))
+
+
+def test_a_stride_4_network_starts_from_the_stride_8_descriptors_upsampled_and_exports(tmp_path):
+    """Stride 4 with the weights of a stride-8 network (``fine`` at zero, as ``train.py --init`` leaves
+    it): its descriptors are the stride-8 ones, bilinearly upsampled and normalised; every parameter
+    learns once ``fine`` is not zero; the ONNX graph gives the torch flow."""
+    pytest.importorskip("onnxruntime")
+    import onnxruntime as ort
+    import torch.nn.functional as F
+
+    torch.manual_seed(0)
+    coarse = FlowPoseNet(pretrained=False, radius=2, descriptor=16).eval()
+    net = FlowPoseNet(pretrained=False, radius=2, descriptor=16, stride=4).eval()
+    assert net.new_modules == ("fine",) and coarse.new_modules == ()
+    missing = net.load_state_dict(coarse.state_dict(), strict=False).missing_keys
+    assert missing and all(k.startswith("fine.") for k in missing)
+    x = torch.rand(2, 6, H, W)
+    with torch.no_grad():
+        f8, f16 = coarse.trunk((torch.cat([x[:, :3], x[:, 3:]]) - coarse.mean) / coarse.std)
+        d8 = coarse.descriptor(torch.cat([f8, F.interpolate(f16, size=f8.shape[-2:], mode="bilinear")], 1))
+        expected = F.normalize(F.interpolate(d8, scale_factor=2, mode="bilinear"), dim=1)
+        image, rendering = net.descriptors(x)
+    assert image.shape == (2, 16, H // 4, W // 4)
+    torch.testing.assert_close(torch.cat([image, rendering]), expected, rtol=0, atol=1e-5)
+    out = net(x)
+    assert out.shape == (2, 3, H // 4, W // 4) and net(x, cost_volume=True).shape == (2, 25, H // 4, W // 4)
+    torch.nn.init.normal_(net.fine[1].weight)
+    net.zero_grad()
+    net(x, cost_volume=True).sum().backward()
+    assert [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0] == []
+    path = tmp_path / "flow.onnx"
+    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["flow"], opset_version=17,
+                      dynamic_axes={"images": {0: "batch"}, "flow": {0: "batch"}}, dynamo=False)
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"images": x.numpy()})[0]
+    np.testing.assert_allclose(got, net(x).detach().numpy(), atol=2e-3)  # px
+
+
 def test_config_checks_name_the_field(tiny_synth_root):
     with pytest.raises(ConfigError, match=r"\[net.crop_resolution\]"):
         build_pose_net(PoseNetConfig(arch="flow", backbone="efficientnet_lite0", crop_resolution=[90, 120]))
@@ -196,6 +243,10 @@ def test_config_checks_name_the_field(tiny_synth_root):
         build_pose_net(PoseNetConfig(arch="flow", backbone="resnet18"))
     with pytest.raises(ConfigError, match=r"\[net.corr_radius\]"):
         build_pose_net(PoseNetConfig(arch="flow", backbone="efficientnet_lite0", corr_radius=0))
+    with pytest.raises(ConfigError, match=r"\[net.flow_stride\].*got 2"):
+        build_pose_net(PoseNetConfig(arch="flow", backbone="efficientnet_lite0", flow_stride=2))
+    with pytest.raises(ConfigError, match=r"\[net.flow_stride\].*net.arch=early"):
+        build_pose_net(PoseNetConfig(flow_stride=4))
     from cosy_lite.config import load_config
     from cosy_lite.train.pose_task import PoseTask, PoseTrainConfig
 
@@ -237,12 +288,15 @@ def _fit_one_batch(root, extra: list[str], steps: int, term: str):
     return task, batch, net, out, values, TCO_in
 
 
-def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root):
-    """Training on the flow loss lowers it, and the fitted network's flow moves the poses towards the GT."""
+@pytest.mark.parametrize("stride", [8, 4])
+def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root, stride):
+    """Training on the flow loss lowers it, and the fitted network's flow moves the poses towards the GT
+    (at stride 4 too: its targets, loss, solver and the loop's stride read from the flow's shape)."""
     from cosy_lite.nets.render_and_compare import iterate_poses
     from cosy_lite.train.pose_task import pose_errors
 
-    task, batch, net, out, losses, TCO_in = _fit_one_batch(tiny_synth_root, [], 25, "total")
+    task, batch, net, out, losses, TCO_in = _fit_one_batch(tiny_synth_root, [f"net.flow_stride={stride}"], 25, "total")
+    assert net.stride == stride
     assert set(out) == {"total", "flow_ce", "pose", "flow_epe_px", "supervised_cells"} and out["supervised_cells"] > 0.1
     assert losses[-1] < 0.7 * losses[0], losses
     rows = task.objects.index(batch.obj_ids)
@@ -313,9 +367,9 @@ def test_depth_ratio_loss_is_zero_at_the_gt_ratio():
     flow = torch.rand(2, 4, H // S, W // S, dtype=torch.float64)
     target = torch.log(gt[:, 2, 3] / noisy[:, 2, 3])
     flow[:, 3] = target[:, None, None]
-    assert depth_ratio_loss(depth, flow, noisy, gt).item() < 1e-6
+    assert depth_ratio_loss(depth, flow, noisy, gt, 8).item() < 1e-6
     flow[:, 3] += 0.1
-    assert abs(depth_ratio_loss(depth, flow, noisy, gt).item() - 0.1) < 1e-6
+    assert abs(depth_ratio_loss(depth, flow, noisy, gt, 8).item() - 0.1) < 1e-6
 
 
 def test_init_adds_a_depth_head_to_the_published_refiner(tmp_path):

@@ -154,7 +154,8 @@ class OnnxPoseNet:
                                  f"metadata crop_resolution {h}x{w})")
         self.output = "flow" if self.config.get("arch") == "flow" else "delta"
         channels = DEPTH_CHANNELS if self.config.get("depth_head") else FLOW_CHANNELS  # (dx, dy, confidence[, depth])
-        expected = [channels, h // FLOW_STRIDE, w // FLOW_STRIDE] if self.output == "flow" else [POSE_OUTPUTS]
+        stride = int(self.config.get("flow_stride", FLOW_STRIDE))  # exports before net.flow_stride: 8
+        expected = [channels, h // stride, w // stride] if self.output == "flow" else [POSE_OUTPUTS]
         got = list(outputs[0].shape)[1:]  # symbolic (str) sizes of traced spatial dims match any value
         if len(got) != len(expected) or any(isinstance(g, int) and g != e for g, e in zip(got, expected)):
             raise OnnxModelError(self.path, f"output {outputs[0].name} shape", f"{list(outputs[0].shape)}, expected "

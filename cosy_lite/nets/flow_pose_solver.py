@@ -29,7 +29,8 @@ from torch import Tensor
 
 from cosy_lite.nets.pose_update import full_precision
 
-FLOW_STRIDE = 8  # px per cell of the flow field (FlowPoseNet.stride)
+FLOW_STRIDE = 8  # px per cell of the flow field, by default (FlowPoseNet.stride; net.flow_stride)
+FLOW_STRIDES = (4, 8)  # the strides a FlowPoseNet can have
 MIN_CELLS = 6  # correspondences needed for a pose (6 unknowns)
 GN_ITERATIONS = 10
 HUBER_PX = 2.0  # crop pixels: residuals beyond weigh 1/|r|
@@ -53,6 +54,17 @@ def sample_cells(depth: Tensor, stride: int, shape: tuple[int, int]) -> Tensor:
     if d.shape[1:] != (h, w):
         raise ValueError(f"depth {tuple(depth.shape)} has no {h}x{w} cells of stride {stride}")
     return d
+
+
+def flow_stride(depth: Tensor, flow: Tensor) -> int:
+    """The stride (crop px per cell) of ``flow [B,C,h,w]`` answered for renderings ``depth [B,1,H,W]``:
+    ``H / h``, which must equal ``W / w`` and be one of :data:`FLOW_STRIDES`."""
+    (H, W), (h, w) = depth.shape[-2:], flow.shape[-2:]
+    stride = H // h if h else 0
+    if stride not in FLOW_STRIDES or (h * stride, w * stride) != (H, W):
+        raise ValueError(f"flow {tuple(flow.shape)} is not a stride-{'/'.join(map(str, FLOW_STRIDES))} field "
+                         f"of renderings {tuple(depth.shape)}")
+    return stride
 
 
 def backproject(uv: Tensor, depth: Tensor, K_crop: Tensor) -> Tensor:

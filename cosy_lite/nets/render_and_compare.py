@@ -111,10 +111,9 @@ def make_inputs(images: Tensor, K: Tensor, TCO: Tensor, obj_ids: Sequence[int], 
 def updated_poses(TCO: Tensor, inp: NetInputs, out: Tensor, output: str = "delta") -> Tensor:
     """The poses ``TCO [B,4,4]`` after the network answered ``out`` to ``inp`` (see the module doc)."""
     if output == "flow":
-        from cosy_lite.nets.flow_pose_net import FlowPoseNet
-        from cosy_lite.nets.flow_pose_solver import pose_from_flow
+        from cosy_lite.nets.flow_pose_solver import flow_stride, pose_from_flow
 
-        return pose_from_flow(TCO, inp.K_crop, inp.depth, out, FlowPoseNet.stride).to(TCO.dtype)
+        return pose_from_flow(TCO, inp.K_crop, inp.depth, out, flow_stride(inp.depth, out)).to(TCO.dtype)
     if output != "delta":
         raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
     return apply_pose_update(TCO, inp.K_crop, out.to(TCO.dtype))
@@ -180,13 +179,12 @@ def _iterate_once(net: Callable[[Tensor], Tensor], images: Tensor, K: Tensor, TC
                   output: str, scored: bool = False) -> tuple[Tensor, Tensor]:
     """One update of every pose ``TCO [B,4,4]``, ``batch_size`` crops per network call, and with ``scored``
     (a flow network) each one's confidence ``[B]`` float64 (:func:`iterate_poses_scored`), else :data:`NOT_SCORED`."""
-    from cosy_lite.nets.flow_pose_net import FlowPoseNet
-    from cosy_lite.nets.flow_pose_solver import flow_confidence
+    from cosy_lite.nets.flow_pose_solver import flow_confidence, flow_stride
 
     def step(sl: slice) -> tuple[Tensor, Tensor]:
         inp = make_inputs(images[sl], K[sl], TCO[sl], obj_ids[sl], points[sl], renderer, crop_resolution)
         out = net(inp.images)
-        score = (flow_confidence(inp.depth, out, FlowPoseNet.stride) if scored else
+        score = (flow_confidence(inp.depth, out, flow_stride(inp.depth, out)) if scored else
                  torch.full((len(out),), NOT_SCORED, dtype=torch.float64, device=out.device))
         return updated_poses(TCO[sl], inp, out, output), score
 

@@ -82,15 +82,14 @@ class PoseTrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
 
 
-def depth_ratio_loss(depth: Tensor, flow: Tensor, TCO_in: Tensor, TCO_gt: Tensor) -> Tensor:
+def depth_ratio_loss(depth: Tensor, flow: Tensor, TCO_in: Tensor, TCO_gt: Tensor, stride: int) -> Tensor:
     """Mean |predicted - GT log depth ratio| of a depth head's items (``flow [B,4,h,w]``, its 4th channel
     pooled as the solver pools it, over the rendered cells of ``depth [B,1,H,W]`` weighted by the
     detached confidence); the GT ratio: ``z_gt / z_in`` of the object origins."""
-    from cosy_lite.nets.flow_pose_net import FlowPoseNet
     from cosy_lite.nets.flow_pose_solver import mean_depth_ratio, sample_cells
 
     B, _, h, w = flow.shape
-    rendered = sample_cells(depth, FlowPoseNet.stride, (h, w)) > 0
+    rendered = sample_cells(depth, stride, (h, w)) > 0
     weights = (flow[:, 2].detach().clamp(0, 1).double() * rendered).reshape(B, -1)
     predicted = mean_depth_ratio(flow[:, 3].double().reshape(B, -1), weights)
     target = torch.log(TCO_gt[:, 2, 3].double() / TCO_in[:, 2, 3].double())
@@ -261,28 +260,29 @@ class PoseTask:
                      res: tuple[int, int]) -> dict[str, Tensor]:
         """Flow refiner: cross-entropy of the cost volume at the GT displacement of each visible cell,
         plus the pose loss of the pose solved from the predicted flow."""
-        from cosy_lite.nets.flow_pose_net import FlowPoseNet, flow_from_cost
+        from cosy_lite.nets.flow_pose_net import flow_from_cost
         from cosy_lite.nets.flow_pose_solver import pose_from_flow
         from cosy_lite.nets.flow_targets import end_point_error, flow_loss, flow_targets
         from cosy_lite.nets.pose_update import pose_update_targets
 
+        stride = self.cfg.net.flow_stride
         with torch.no_grad():
             TCO_gt = closest_symmetric_pose(TCO_in.double(), batch.TCO.double(), points.double(), syms.double(), sym_mask)
             visible = crop_images(batch.masks[:, None].float(), inp.boxes, res, mode="nearest")[:, 0] > 0.5
-            targets = flow_targets(inp.depth, inp.K_crop, TCO_in, TCO_gt, visible, FlowPoseNet.stride)
+            targets = flow_targets(inp.depth, inp.K_crop, TCO_in, TCO_gt, visible, stride)
         raw = model(inp.images.contiguous(memory_format=torch.channels_last), cost_volume=True).float()
         radius = self.cfg.net.corr_radius
         logits, depth_ratio = raw[:, :(2 * radius + 1) ** 2], raw[:, (2 * radius + 1) ** 2:]
-        ce = flow_loss(logits, targets, radius, FlowPoseNet.stride)
-        flow = torch.cat([flow_from_cost(logits, radius, FlowPoseNet.stride), depth_ratio], dim=1)
+        ce = flow_loss(logits, targets, radius, stride)
+        flow = torch.cat([flow_from_cost(logits, radius, stride), depth_ratio], dim=1)
         out = {"flow_ce": ce.detach()}
         total = ce
         if depth_ratio.shape[1]:
-            depth = depth_ratio_loss(inp.depth, flow, TCO_in, TCO_gt)
+            depth = depth_ratio_loss(inp.depth, flow, TCO_in, TCO_gt, stride)
             total = total + self.cfg.flow_depth_weight * depth
             out["depth_ratio"] = depth.detach()
         if self.cfg.flow_pose_weight > 0:
-            TCO_new = pose_from_flow(TCO_in, inp.K_crop, inp.depth, flow, FlowPoseNet.stride, FLOW_TRAIN_GN_ITERATIONS)
+            TCO_new = pose_from_flow(TCO_in, inp.K_crop, inp.depth, flow, stride, FLOW_TRAIN_GN_ITERATIONS)
             delta = pose_update_targets(TCO_in.double(), TCO_new, inp.K_crop.double())
             terms = disentangled_loss(TCO_in, inp.K_crop, delta.float(), batch.TCO, points, syms, sym_mask)
             if torch.isfinite(terms.total):  # a degenerate solve of one batch contributes no pose gradient

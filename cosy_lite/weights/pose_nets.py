@@ -45,6 +45,9 @@ class PoseNetConfig:
     # flow: a depth head (log ratio of the new depth to the current one, a 4th output channel) instead
     # of the depth the flow's scale implies
     depth_head: bool = False
+    # flow: crop pixels per flow cell, 8 or 4 (stride-8 descriptors upsampled plus a residual from the
+    # trunk's stride-4 map); corr_radius counts cells of this size
+    flow_stride: int = 8
 
 
 def check_net_config(cfg: PoseNetConfig) -> None:
@@ -63,6 +66,9 @@ def check_net_config(cfg: PoseNetConfig) -> None:
                           f"got {list(cfg.crop_resolution)}")
     if cfg.depth_head and cfg.arch != "flow":
         raise ConfigError("network config", "net.depth_head", f"a depth head belongs to net.arch=flow, not {cfg.arch!r}")
+    if cfg.flow_stride != 8 and (cfg.arch != "flow" or cfg.flow_stride != 4):
+        raise ConfigError("network config", "net.flow_stride", f"expected 8, or 4 with net.arch=flow; got "
+                          f"{cfg.flow_stride!r} with net.arch={cfg.arch}")
     if cfg.arch == "flow" and cfg.corr_radius < 1:
         raise ConfigError("network config", "net.corr_radius", f"net.arch=flow needs >= 1 cell, got {cfg.corr_radius}")
     if cfg.arch == "early" and cfg.backbone not in BACKBONES:
@@ -86,7 +92,8 @@ def build_pose_net(net_cfg: PoseNetConfig | dict[str, Any], kind: str = "refiner
         from cosy_lite.nets.flow_pose_net import FlowPoseNet
 
         return FlowPoseNet(cfg.backbone, pretrained=cfg.pretrained, load_weights=load_weights,
-                           radius=cfg.corr_radius, descriptor=cfg.width, depth_head=cfg.depth_head)
+                           radius=cfg.corr_radius, descriptor=cfg.width, depth_head=cfg.depth_head,
+                           stride=cfg.flow_stride)
     if cfg.arch == "siamese":
         from cosy_lite.nets.siamese_pose_net import SiamesePoseNet
 
