@@ -380,7 +380,7 @@ def test_init_adds_a_depth_head_to_the_published_refiner(tmp_path):
     from cosy_lite.weights.reference_models import reference_models
 
     published = reference_models("ycbvsynth").path("refiner")
-    cfg = dict(arch="flow", backbone="efficientnet_lite0", crop_resolution=[144, 192], corr_radius=4, width=64)
+    cfg = dict(arch="flow", backbone="efficientnet_lite0", crop_resolution=[144, 192], corr_radius=4, width=64, flow_stride=4)
     net = build_pose_net(PoseNetConfig(**cfg, depth_head=True), "refiner", load_weights=False)
     record = load_initial_weights(net, published, "refiner")
     assert record["new_modules"] == ["depth_head"]

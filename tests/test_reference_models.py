@@ -57,9 +57,9 @@ def test_the_default_dataset_has_a_detector_and_a_refiner_with_cards():
             assert card[key], f"{kind}.json: field {key!r} is empty"
     settings = inference_config(ref.inference, ref.pipeline_path)
     assert (settings.start, settings.n_candidates, settings.candidate_choice, settings.n_refiner_iterations) == (
-        "appearance", 6, "start", 5)
-    fine = (settings.refiner_fine_iterations, settings.refiner_fine_resolution, settings.depth_iterations())
-    assert fine == ([5], [240, 320], 4)
+        "appearance", 6, "start", 4)
+    assert (settings.refiner_fine_iterations, settings.depth_iterations()) == ([], 4)
+    assert ref.cards["refiner"]["config"]["net"]["flow_stride"] == 4  # session 36: 4 iterations at stride 4
 
 
 def test_weights_stay_within_the_size_limit_and_only_in_the_reference_folder():
@@ -426,8 +426,8 @@ def test_the_exported_set_describes_detections_with_its_scorer(test_images, onnx
 
 def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_images, templates_cache):
     """A decoy labelled X on another object's region outscores X's own detection: with one candidate per
-    instance the decoy is posed; with ``vivo_candidates`` 2 the refiner's confidence picks X's own, before
-    the set's last iteration on 240x320 crops: only the detection kept runs it."""
+    instance the decoy is posed; with ``vivo_candidates`` 2 both are refined (the set's 4 iterations on
+    144x192 crops) and the refiner's confidence picks X's own."""
     from cosy_lite.bop.dataset import BopDataset
     from cosy_lite.bop.detections import Detections, oracle_detections
 
@@ -435,7 +435,7 @@ def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_i
     predictors = {n: Predictor.from_pretrained(
         NAME, dataset=test_images, detector=False, templates_cache=templates_cache,
         config=inference_config(reference_models(NAME).inference, overrides=[f"vivo_candidates={n}"])) for n in (1, 2)}
-    assert predictors[2].config.refiner_fine_iterations == [5] and predictors[2].config.n_refiner_iterations == 5
+    assert predictors[2].config.refiner_fine_iterations == [] and predictors[2].config.n_refiner_iterations == 4
     refiner, crops = predictors[2]._nets["refiner"], []
 
     def recording(x: torch.Tensor) -> torch.Tensor:
@@ -454,7 +454,7 @@ def test_vivo_candidates_keep_the_detection_whose_pose_the_refiner_trusts(test_i
             crops.clear()
             est = {n: p.predict(rgb, rec.camera.K, detections=det, inst_counts={obj: 1}) for n, p in predictors.items()}
             assert len(est[1]) == len(est[2]) == 1
-            assert crops == [(2, 6, 144, 192)] * 4 + [(1, 6, 240, 320)], crops  # both posed; the one kept on larger crops
+            assert crops == [(2, 6, 144, 192)] * 4, crops  # both posed, then one kept
             assert est[1].scores.tolist() == pytest.approx([0.9])  # the best scored: the decoy
             picked_own = est[2].scores.tolist() == pytest.approx([0.5])
             for e in est.values():  # each estimate is its own detection's: its origin projects into that box
