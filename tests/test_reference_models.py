@@ -194,7 +194,7 @@ def test_from_pretrained_builds_the_sets_pipeline(tiny_synth_root):
 
     ref = reference_models(NAME)
     p = Predictor.from_pretrained(NAME, dataset=tiny_synth_root, detector=False, obj_ids=[1, 2, 5, 8])
-    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 5)
+    assert (p.start, p.n_candidates, p.config.candidate_choice, p.n_refiner_iterations) == ("appearance", 6, "start", 4)
     assert p.config.mask_threshold == 0.275  # the set's detector's masks (its pipeline.json), not torchvision's 0.5
     assert (p.config.vivo_candidates, p.config.vivo_score_ratio) == (2, 0.3)  # two detections per ViVo instance
     assert p.detector is None and p.coarse is None and p.refiner.path == ref.path("refiner")
