@@ -74,7 +74,7 @@ class Plan:
         ref_init = str(REFERENCE / "refiner.safetensors")
         common = ["loop.val_every=1000000", "loop.checkpoint_every=100", "loop.num_workers=4", "loop.log_every=20",
                   "optim.schedule=cosine", "optim.warmup_steps=50", "loop.device=cuda"]
-        refiner = common + ["loop.batch_size=32", "optim.lr=4e-4", "data.val_instances=256"]
+        refiner = common + ["loop.batch_size=32", "optim.lr=4e-4", "data.val_instances=256", *reference_refiner_net()]
         jobs = {"detector": Job("detector", "demo", common + ["loop.batch_size=8", "optim.lr=2e-4"], det_init),
                 "refiner": Job("refiner", "demo", refiner + ["augmentation.enabled=false"], ref_init),
                 "refiner_aug": Job("refiner", "demo", refiner + ["augmentation.enabled=true"], ref_init)}
@@ -97,10 +97,17 @@ class Plan:
                                               "train.n_images=20", "test.n_images=6"],
                     minutes=10.0,
                     jobs={"detector": Job("detector", "demo", det), "coarse": Job("coarse", "demo", pose),
-                          "refiner": Job("refiner", "demo", pose + ["net.crop_resolution=[144,192]"],
+                          "refiner": Job("refiner", "demo", pose + ["net.crop_resolution=[144,192]", *reference_refiner_net()],
                                          str(REFERENCE / "refiner.safetensors"))},
                     infer_limit_images=2, candidates=2,
                     stage_timeout_s={"generate": 300, "infer": 300, "eval": 120})
+
+
+def reference_refiner_net() -> list[str]:
+    """Overrides that make the demo profile build the published refiner's network (its card's
+    ``net.flow_stride``: the set's refiner is stride 4 since session 36, the profile's default 8)."""
+    card = json.loads((REFERENCE / "refiner.json").read_text())
+    return [f"net.flow_stride={int(card['config']['net'].get('flow_stride', 8))}"]
 
 
 class Run:
