@@ -201,12 +201,24 @@ def test_flow_stride_is_read_from_the_shapes_and_a_field_of_another_size_is_refu
             flow_stride(depth, torch.zeros(2, 3, h, w))
 
 
+def _every_parameter_learns_and_onnx(net: FlowPoseNet, x: torch.Tensor, tmp_path) -> np.ndarray:
+    """Every parameter of ``net`` gets a gradient (DDP needs one); its ONNX graph's output for ``x``."""
+    import onnxruntime as ort
+
+    net.zero_grad()
+    net(x, cost_volume=True).sum().backward()
+    assert [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0] == []
+    path = tmp_path / "flow.onnx"
+    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["flow"], opset_version=17,
+                      dynamic_axes={"images": {0: "batch"}, "flow": {0: "batch"}}, dynamo=False)
+    return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"images": x.numpy()})[0]
+
+
 def test_a_stride_4_network_starts_from_the_stride_8_descriptors_upsampled_and_exports(tmp_path):
     """Stride 4 with the weights of a stride-8 network (``fine`` at zero, as ``train.py --init`` leaves
     it): its descriptors are the stride-8 ones, bilinearly upsampled and normalised; every parameter
     learns once ``fine`` is not zero; the ONNX graph gives the torch flow."""
     pytest.importorskip("onnxruntime")
-    import onnxruntime as ort
     import torch.nn.functional as F
 
     torch.manual_seed(0)
@@ -226,13 +238,7 @@ def test_a_stride_4_network_starts_from_the_stride_8_descriptors_upsampled_and_e
     out = net(x)
     assert out.shape == (2, 3, H // 4, W // 4) and net(x, cost_volume=True).shape == (2, 25, H // 4, W // 4)
     torch.nn.init.normal_(net.fine[1].weight)
-    net.zero_grad()
-    net(x, cost_volume=True).sum().backward()
-    assert [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0] == []
-    path = tmp_path / "flow.onnx"
-    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["flow"], opset_version=17,
-                      dynamic_axes={"images": {0: "batch"}, "flow": {0: "batch"}}, dynamo=False)
-    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"images": x.numpy()})[0]
+    got = _every_parameter_learns_and_onnx(net, x, tmp_path)
     np.testing.assert_allclose(got, net(x).detach().numpy(), atol=2e-3)  # px
 
 
@@ -315,7 +321,6 @@ def test_flow_refiner_fits_one_batch_and_its_update_helps(tiny_synth_root, strid
 
 def test_depth_head_starts_at_zero_reaches_every_parameter_and_exports(tmp_path):
     pytest.importorskip("onnxruntime")
-    import onnxruntime as ort
 
     torch.manual_seed(0)
     net = FlowPoseNet(pretrained=False, radius=2, descriptor=16, depth_head=True).eval()
@@ -328,13 +333,7 @@ def test_depth_head_starts_at_zero_reaches_every_parameter_and_exports(tmp_path)
     torch.testing.assert_close(out[:, :3], plain(x), rtol=0, atol=1e-6)  # the flow is the plain network's
     assert net(x, cost_volume=True).shape == (2, 26, H // S, W // S)
     torch.nn.init.normal_(net.depth_head[2].weight)
-    net.zero_grad()
-    net(x, cost_volume=True).sum().backward()
-    assert [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0] == []
-    path = tmp_path / "flow.onnx"
-    torch.onnx.export(net, (x,), str(path), input_names=["images"], output_names=["flow"], opset_version=17,
-                      dynamic_axes={"images": {0: "batch"}, "flow": {0: "batch"}}, dynamo=False)
-    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"images": x.numpy()})[0]
+    got = _every_parameter_learns_and_onnx(net, x, tmp_path)
     assert got.shape == (2, 4, H // S, W // S)
     np.testing.assert_allclose(got[:, 3], net(x)[:, 3].detach().numpy(), atol=1e-3)
 
