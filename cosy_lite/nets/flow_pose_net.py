@@ -2,7 +2,7 @@
 
 Input as every pose network here: the image crop and the rendering stacked on channels,
 ``[B, 6, H, W]`` in ``[0, 1]``. Output: a dense displacement field on the stride-8 (or 4) grid,
-``[B, 3, H/8, W/8]`` = (dx, dy) in crop pixels from each rendering cell to the matching image
+``[B, 3, H/s, W/s]`` (``s`` = 8 or 4) = (dx, dy) in crop pixels from each rendering cell to the matching image
 position, and a confidence in ``[0, 1]``. The pose update is then geometry, not learning: the
 rendering's depth makes every cell a 2D-3D correspondence and
 :func:`cosy_lite.nets.flow_pose_solver.pose_from_flow` fits the pose to them.

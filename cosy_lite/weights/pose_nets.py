@@ -53,6 +53,7 @@ class PoseNetConfig:
 def check_net_config(cfg: PoseNetConfig) -> None:
     """ConfigError naming the field when ``net.arch`` / ``net.backbone`` / ``net.render_shading`` do not fit."""
     from cosy_lite.nets.backbones import BACKBONES
+    from cosy_lite.nets.flow_pose_solver import FLOW_STRIDE, FLOW_STRIDES
     from cosy_lite.nets.pretrained import WEIGHTS
     from cosy_lite.render.renderer import SHADINGS
 
@@ -66,9 +67,9 @@ def check_net_config(cfg: PoseNetConfig) -> None:
                           f"got {list(cfg.crop_resolution)}")
     if cfg.depth_head and cfg.arch != "flow":
         raise ConfigError("network config", "net.depth_head", f"a depth head belongs to net.arch=flow, not {cfg.arch!r}")
-    if cfg.flow_stride != 8 and (cfg.arch != "flow" or cfg.flow_stride != 4):
-        raise ConfigError("network config", "net.flow_stride", f"expected 8, or 4 with net.arch=flow; got "
-                          f"{cfg.flow_stride!r} with net.arch={cfg.arch}")
+    if cfg.flow_stride != FLOW_STRIDE and (cfg.arch != "flow" or cfg.flow_stride not in FLOW_STRIDES):
+        raise ConfigError("network config", "net.flow_stride", f"expected {FLOW_STRIDE}, or one of {list(FLOW_STRIDES)} "
+                          f"with net.arch=flow; got {cfg.flow_stride!r} with net.arch={cfg.arch}")
     if cfg.arch == "flow" and cfg.corr_radius < 1:
         raise ConfigError("network config", "net.corr_radius", f"net.arch=flow needs >= 1 cell, got {cfg.corr_radius}")
     if cfg.arch == "early" and cfg.backbone not in BACKBONES:
