@@ -373,7 +373,8 @@ def test_depth_ratio_loss_is_zero_at_the_gt_ratio():
 
 def test_init_adds_a_depth_head_to_the_published_refiner(tmp_path):
     """``train.py --init`` with the reference refiner (no depth head) and ``net.depth_head=true``: every
-    published tensor taken, the head named in the record; the other way round is refused."""
+    published tensor taken, the head named in the record; the other way round is refused, as is a
+    stride-8 network, the error naming the setting that differs."""
     from cosy_lite.train.init_weights import load_initial_weights
     from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint, save_weights
     from cosy_lite.weights.reference_models import reference_models
@@ -393,6 +394,10 @@ def test_init_adds_a_depth_head_to_the_published_refiner(tmp_path):
     with_head = save_weights(tmp_path / "refiner.safetensors", ckpt)[0]
     with pytest.raises(CheckpointError, match=r"unexpected \['depth_head"):
         load_initial_weights(plain, with_head, "refiner")
+    stride8 = dict(cfg, flow_stride=8)
+    at_stride8 = build_pose_net(PoseNetConfig(**stride8), "refiner", load_weights=False)
+    with pytest.raises(CheckpointError, match=r"the file's net\.flow_stride=4 \(this run: 8\)\)$"):
+        load_initial_weights(at_stride8, published, "refiner", stride8)
 
 
 def test_a_depth_head_fitted_to_one_batch_corrects_the_depth(tiny_synth_root):

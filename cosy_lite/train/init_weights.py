@@ -20,13 +20,15 @@ import torch
 from cosy_lite.weights.checkpoint import CheckpointError, load_checkpoint
 
 
-def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) -> dict[str, Any]:
+def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str,
+                         net: dict[str, Any] | None = None) -> dict[str, Any]:
     """Copy the ``kind`` network of ``path`` into ``model``; returns the record kept in the run's meta:
     ``{"path", "kind", "step", "items_seen"}`` (``items_seen``: the crops/images that trained the
     file's network, :func:`items_seen`; the file's own ``init`` record is kept under ``"init"``).
 
     Raises CheckpointError naming the file when it is another kind of network or its tensors do not
-    fit ``model`` (missing, unexpected or differently shaped parameters)."""
+    fit ``model`` (missing, unexpected or differently shaped parameters); ``net`` (the run's ``net.*``
+    settings) lets that error name the settings in which the file's network differs."""
     path = Path(path)
     ckpt = load_checkpoint(path, kind=kind)
     own = model.state_dict()
@@ -38,7 +40,8 @@ def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) ->
         parts = [f"{name} {keys[:3]}" for name, keys in (("missing", missing), ("unexpected", unexpected),
                                                           ("differently shaped", shapes)) if keys]
         raise CheckpointError(path, "field 'model' does not fit the network this run builds ("
-                              + "; ".join(parts) + "); expected weights of the same architecture (net.* settings)")
+                              + "; ".join(parts) + "); expected weights of the same architecture ("
+                              + _differing_settings(ckpt.meta.get("net"), net) + ")")
     model.load_state_dict({k: v.to(own[k].dtype) for k, v in ckpt.model.items()}, strict=not fresh)
     record: dict[str, Any] = {"path": str(path), "kind": ckpt.kind, "step": int(ckpt.step),
                               "items_seen": items_seen(path, ckpt.meta)}
@@ -47,6 +50,17 @@ def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) ->
     if "init" in ckpt.meta:
         record["init"] = ckpt.meta["init"]
     return record
+
+
+def _differing_settings(theirs: Any, ours: dict[str, Any] | None) -> str:
+    """The ``net.*`` settings in which the file's network (its meta) differs from the run's, as
+    ``net.KEY=FILE'S (this run: RUN'S)``; "net.* settings" when either side is unknown or none differs."""
+    if not isinstance(theirs, dict) or not ours:
+        return "net.* settings"
+    keys = sorted(k for k in set(theirs) & set(ours) if theirs[k] != ours[k])
+    if not keys:
+        return "net.* settings"
+    return "the file's " + ", ".join(f"net.{k}={theirs[k]!r} (this run: {ours[k]!r})" for k in keys)
 
 
 def new_modules(model: torch.nn.Module) -> tuple[str, ...]:

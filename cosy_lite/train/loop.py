@@ -148,7 +148,9 @@ def _start_run(task: TrainTask, model: torch.nn.Module, optimizer: torch.optim.O
     if init is not None:
         from cosy_lite.train.init_weights import load_initial_weights
 
-        return RunState(init_record=load_initial_weights(model, init, task.kind), weights_source=f"init: {init}")
+        net = config.get("net")
+        return RunState(init_record=load_initial_weights(model, init, task.kind, net if isinstance(net, dict) else None),
+                        weights_source=f"init: {init}")
     return RunState()
 
 
